@@ -1,0 +1,65 @@
+"""``vlm-vpr``: the command-line entry point. Each sub-command lives in its own module that
+exposes ``register(subparsers)``; modules listed in ``_COMMAND_MODULES`` are loaded in order."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+
+from vlm_vpr_ros.errors import VlmVprError
+
+log = logging.getLogger("vlm_vpr_ros")
+
+_COMMAND_MODULES = (
+    "vlm_vpr_ros.cli.core",      # build-map, localize, evaluate, descriptors, demo
+    "vlm_vpr_ros.cli.weights",   # weights fetch / list (deep VPR models)
+    "vlm_vpr_ros.cli.priors",    # priors score / ask (VLM)
+    "vlm_vpr_ros.cli.bag",       # bag make, replay, evaluate-bag, ablate
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="vlm-vpr",
+        description="VLM-guided visual place recognition: build geotagged maps, localize "
+                    "images, score VLM priors and evaluate bags. Run 'vlm-vpr demo' first.",
+    )
+    parser.add_argument("-v", "--verbose", action="count", default=0,
+                        help="more log output (-vv for debug)")
+    parser.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    for mod_name in _COMMAND_MODULES:
+        try:
+            mod = importlib.import_module(mod_name)
+        except ModuleNotFoundError as exc:
+            if exc.name != mod_name:
+                raise
+            continue
+        mod.register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    level = logging.WARNING if args.quiet else (
+        logging.INFO if args.verbose < 2 else logging.DEBUG)
+    # The CLI (not the library) configures logging; logs go to stderr so --json stays clean.
+    logging.basicConfig(level=level, stream=sys.stderr,
+                        format="%(levelname)s %(name)s: %(message)s")
+    try:
+        rc = args.func(args)
+    except VlmVprError as exc:
+        log.error("%s", exc)
+        return 2
+    except KeyboardInterrupt:
+        log.warning("interrupted")
+        return 130
+    return int(rc or 0)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,74 @@
+"""Geodesy on the WGS-84 sphere approximation: haversine distances, accuracy tables, ENU."""
+
+from __future__ import annotations
+
+import math
+from typing import Iterable, Sequence
+
+import numpy as np
+
+#: mean Earth radius used by the geo-localization literature (km)
+EARTH_RADIUS_KM = 6371.0088
+#: the paper's accuracy thresholds (km)
+THRESHOLDS_KM: tuple[float, ...] = (1.0, 25.0, 200.0, 750.0, 2500.0)
+#: half the Earth's circumference: the largest possible great-circle error (km)
+MAX_DISTANCE_KM = math.pi * EARTH_RADIUS_KM
+
+
+def haversine_km(lat1, lon1, lat2, lon2) -> np.ndarray | float:
+    """Great-circle distance(s) in km; accepts scalars or broadcastable arrays (degrees)."""
+    lat1, lon1, lat2, lon2 = (np.radians(np.asarray(v, dtype=np.float64))
+                              for v in (lat1, lon1, lat2, lon2))
+    a = (np.sin((lat2 - lat1) / 2.0) ** 2
+         + np.cos(lat1) * np.cos(lat2) * np.sin((lon2 - lon1) / 2.0) ** 2)
+    d = 2.0 * EARTH_RADIUS_KM * np.arcsin(np.sqrt(np.clip(a, 0.0, 1.0)))
+    return float(d) if d.ndim == 0 else d
+
+
+def latlon_to_unit(lat, lon) -> np.ndarray:
+    """(N, 3) unit vectors on the sphere for degrees lat/lon (for seam-free clustering)."""
+    lat = np.radians(np.asarray(lat, dtype=np.float64))
+    lon = np.radians(np.asarray(lon, dtype=np.float64))
+    return np.stack([np.cos(lat) * np.cos(lon), np.cos(lat) * np.sin(lon), np.sin(lat)], -1)
+
+
+def unit_to_latlon(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Inverse of :func:`latlon_to_unit` (vectors need not be unit length)."""
+    xyz = np.asarray(xyz, dtype=np.float64)
+    lat = np.degrees(np.arctan2(xyz[..., 2], np.hypot(xyz[..., 0], xyz[..., 1])))
+    lon = np.degrees(np.arctan2(xyz[..., 1], xyz[..., 0]))
+    return lat, lon
+
+
+def spherical_mean(lat, lon) -> tuple[float, float]:
+    """Centroid of points on the sphere (handles the antimeridian)."""
+    la, lo = unit_to_latlon(latlon_to_unit(lat, lon).mean(axis=0))
+    return float(la), float(lo)
+
+
+def accuracy_table(errors_km: Iterable[float | None],
+                   thresholds: Sequence[float] = THRESHOLDS_KM) -> dict[str, float]:
+    """Percent of rows with error ≤ each threshold; ``None``/NaN rows count as misses."""
+    errs = np.array([np.nan if e is None else float(e) for e in errors_km], dtype=np.float64)
+    n = len(errs)
+    out = {}
+    for t in thresholds:
+        hits = int(np.sum(np.nan_to_num(errs, nan=np.inf) <= t))
+        out[f"{t:g}km"] = 100.0 * hits / n if n else 0.0
+    return out
+
+
+def median_km(errors_km: Iterable[float | None]) -> float | None:
+    """Median error over rows, a missing row counting as the worst possible error."""
+    errs = [MAX_DISTANCE_KM if e is None or not math.isfinite(e) else float(e)
+            for e in errors_km]
+    return float(np.median(errs)) if errs else None
+
+
+def enu_offset_m(lat0: float, lon0: float, lat: float, lon: float) -> tuple[float, float]:
+    """Local east/north offset (m) of (lat, lon) from (lat0, lon0); equirectangular, for
+    covariance and small-offset use only."""
+    r = EARTH_RADIUS_KM * 1000.0
+    east = math.radians(lon - lon0) * math.cos(math.radians(lat0)) * r
+    north = math.radians(lat - lat0) * r
+    return east, north

@@ -1,0 +1,59 @@
+"""Prior-provider registry: ``none``, ``fixed``, ``recorded`` here; ``openai`` and ``answers``
+register from :mod:`vlm_vpr_ros.priors.vlm` (the VLM client)."""
+
+from __future__ import annotations
+
+import importlib
+import inspect
+from typing import Any, Callable, Mapping
+
+from vlm_vpr_ros.config import choose
+from vlm_vpr_ros.errors import ConfigError
+from vlm_vpr_ros.priors.base import Prior, PriorProvider, PriorQuery, PriorResult
+from vlm_vpr_ros.priors.simple import FixedPrior, NoPrior, RecordedPrior
+
+__all__ = [
+    "Prior", "PriorProvider", "PriorQuery", "PriorResult",
+    "available_prior_providers", "create_prior_provider", "register_prior_provider",
+]
+
+_REGISTRY: dict[str, Callable[..., PriorProvider]] = {
+    "none": NoPrior,
+    "fixed": FixedPrior,
+    "recorded": RecordedPrior,
+}
+_PROVIDER_MODULES = ("vlm_vpr_ros.priors.vlm",)
+_loaded = False
+
+
+def register_prior_provider(name: str, factory: Callable[..., PriorProvider]) -> None:
+    _REGISTRY[name] = factory
+
+
+def available_prior_providers() -> dict[str, Callable[..., PriorProvider]]:
+    global _loaded
+    if not _loaded:
+        for mod in _PROVIDER_MODULES:
+            try:
+                importlib.import_module(mod)
+            except ModuleNotFoundError as exc:
+                if exc.name != mod:
+                    raise
+        _loaded = True
+    return dict(sorted(_REGISTRY.items()))
+
+
+def create_prior_provider(name: str, config: Mapping[str, Any] | None = None) -> PriorProvider:
+    """Create provider ``name`` from keyword ``config``; unknown names/keys raise ConfigError."""
+    factory = choose(name, available_prior_providers(), "prior provider")
+    config = dict(config or {})
+    params = inspect.signature(factory).parameters
+    if not any(p.kind is p.VAR_KEYWORD for p in params.values()):
+        unknown = sorted(set(config) - set(params))
+        if unknown:
+            raise ConfigError(f"unknown option(s) {unknown} for prior provider {name!r}; "
+                              f"valid: {sorted(params)}")
+    try:
+        return factory(**config)
+    except TypeError as exc:
+        raise ConfigError(f"prior provider {name!r}: {exc}") from exc

@@ -1,0 +1,93 @@
+"""The prior-source interface: something that guesses a coarse (lat, lon) for a query image.
+
+Providers are asynchronous by contract: :meth:`PriorProvider.request` returns a
+``concurrent.futures.Future`` immediately and never blocks the caller. Failures (timeouts, HTTP
+errors, refusals, unreadable text) are *values* — a :class:`PriorResult` with ``prior=None`` and a
+``reason`` — never exceptions, so a robot keeps localizing (flagged) when the VLM is down.
+"""
+
+from __future__ import annotations
+
+import abc
+import concurrent.futures as cf
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Prior:
+    """A coarse position guess in WGS-84 degrees."""
+
+    lat: float
+    lon: float
+    source: str  # provider name, e.g. "openai:gpt-4o", "fixed", "recorded"
+
+
+@dataclass(frozen=True)
+class PriorQuery:
+    """What a provider may use to answer: pixels, the encoded file, and a lookup key."""
+
+    image: np.ndarray | None = None  # (H, W, 3) uint8 RGB
+    encoded: bytes | None = None  # original JPEG/PNG bytes when available
+    key: str | None = None  # file name (recorded answers) or frame id
+
+
+@dataclass(frozen=True)
+class PriorResult:
+    """Outcome of one prior request. ``prior is None`` means "no prior" and ``reason`` says why."""
+
+    prior: Prior | None
+    source: str
+    reason: str = ""  # "" when ok; e.g. "timeout", "http_429", "refusal", "no_coordinates"
+    latency_s: float = 0.0
+    raw_text: str | None = None  # the VLM's raw answer, for audit (never contains secrets)
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        return self.prior is not None
+
+    @classmethod
+    def failure(cls, source: str, reason: str, latency_s: float = 0.0,
+                raw_text: str | None = None) -> "PriorResult":
+        return cls(prior=None, source=source, reason=reason, latency_s=latency_s,
+                   raw_text=raw_text)
+
+
+class PriorProvider(abc.ABC):
+    """Base class of prior sources. Subclasses implement :meth:`_compute` (blocking) or override
+    :meth:`request` for natively asynchronous clients."""
+
+    name: str = ""
+
+    def request(self, query: PriorQuery) -> "cf.Future[PriorResult]":
+        """Start a request and return a future; cheap providers complete it synchronously."""
+        fut: cf.Future[PriorResult] = cf.Future()
+        t0 = time.monotonic()
+        try:
+            result = self._compute(query)
+        except Exception as exc:  # noqa: BLE001 - a provider bug must not kill the caller
+            result = PriorResult.failure(self.name, f"error: {exc}")
+        if not result.latency_s:
+            result = PriorResult(result.prior, result.source, result.reason,
+                                 time.monotonic() - t0, result.raw_text, result.extra)
+        fut.set_result(result)
+        return fut
+
+    def get(self, query: PriorQuery, timeout_s: float | None = None) -> PriorResult:
+        """Blocking convenience: wait for :meth:`request` at most ``timeout_s`` seconds."""
+        fut = self.request(query)
+        try:
+            return fut.result(timeout=timeout_s)
+        except cf.TimeoutError:
+            fut.cancel()
+            return PriorResult.failure(self.name, "timeout", latency_s=timeout_s or 0.0)
+
+    def _compute(self, query: PriorQuery) -> PriorResult:  # pragma: no cover - abstract-ish
+        raise NotImplementedError
+
+    def close(self) -> None:
+        """Cancel pending work and free resources."""

@@ -1,0 +1,92 @@
+"""Prior providers that need no network: ``none``, ``fixed`` and ``recorded``."""
+
+from __future__ import annotations
+
+import csv
+import logging
+import math
+import os
+from pathlib import Path
+
+from vlm_vpr_ros.errors import DataError, PriorError
+from vlm_vpr_ros.priors.base import Prior, PriorProvider, PriorQuery, PriorResult
+
+log = logging.getLogger(__name__)
+
+
+def valid_latlon(lat: float, lon: float) -> bool:
+    """True for finite WGS-84 degrees in range."""
+    return (math.isfinite(lat) and math.isfinite(lon)
+            and -90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0)
+
+
+class NoPrior(PriorProvider):
+    """Never gives a prior: the localizer falls back to flagged global retrieval."""
+
+    name = "none"
+
+    def _compute(self, query: PriorQuery) -> PriorResult:
+        return PriorResult.failure(self.name, "disabled")
+
+
+class FixedPrior(PriorProvider):
+    """An operator's hint: the same (lat, lon) for every query."""
+
+    name = "fixed"
+
+    def __init__(self, lat: float, lon: float) -> None:
+        lat, lon = float(lat), float(lon)
+        if not valid_latlon(lat, lon):
+            raise PriorError(f"fixed prior ({lat}, {lon}) is not a valid WGS-84 position")
+        self.prior = Prior(lat, lon, self.name)
+
+    def _compute(self, query: PriorQuery) -> PriorResult:
+        return PriorResult(self.prior, self.name)
+
+
+def read_prior_csv(path: str | os.PathLike[str]) -> dict[str, tuple[float, float]]:
+    """Read a ``file, lat, lon`` CSV into {file: (lat, lon)}; blank/invalid rows are skipped."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"priors CSV not found: {path}")
+    out: dict[str, tuple[float, float]] = {}
+    with path.open(newline="", encoding="utf-8") as fh:
+        reader = csv.DictReader(fh)
+        missing = {"file", "lat", "lon"} - set(reader.fieldnames or [])
+        if missing:
+            raise DataError(f"{path}: missing column(s) {sorted(missing)}; "
+                            f"has {reader.fieldnames}")
+        bad = 0
+        for row in reader:
+            try:
+                lat, lon = float(row["lat"]), float(row["lon"])
+            except (TypeError, ValueError):
+                bad += 1
+                continue
+            if valid_latlon(lat, lon):
+                out[row["file"]] = (lat, lon)
+            else:
+                bad += 1
+    if bad:
+        log.warning("%s: %d row(s) without a valid lat/lon are treated as 'no prior'", path, bad)
+    return out
+
+
+class RecordedPrior(PriorProvider):
+    """Priors recorded beforehand, looked up by the query's file name (``key``)."""
+
+    name = "recorded"
+
+    def __init__(self, path: str) -> None:
+        self.path = path
+        self.table = read_prior_csv(path)
+        # also allow lookup by basename, so 'images/a.jpg' and 'a.jpg' both work
+        self._by_base = {os.path.basename(k): v for k, v in self.table.items()}
+
+    def _compute(self, query: PriorQuery) -> PriorResult:
+        if not query.key:
+            return PriorResult.failure(self.name, "no_key")
+        hit = self.table.get(query.key) or self._by_base.get(os.path.basename(query.key))
+        if hit is None:
+            return PriorResult.failure(self.name, "not_recorded")
+        return PriorResult(Prior(hit[0], hit[1], self.name), self.name)
