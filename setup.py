@@ -30,7 +30,6 @@ setup(
     maintainer_email="maintainers@vlm-vpr-ros.invalid",
     description="VLM-guided visual place recognition (kidnapped-robot geo-localization) for ROS 2",
     license="Apache-2.0",
-    tests_require=["pytest"],
     entry_points={
         "console_scripts": [
             "vlm-vpr = vlm_vpr_ros.cli:main",
