@@ -35,12 +35,82 @@ def summarize(errs: Iterable[float | None]) -> dict:
 def format_table(rows: dict[str, dict], title: str = "") -> str:
     """Plain-text table: one line per named summary (as returned by :func:`summarize`)."""
     keys = [f"{t:g}km" for t in THRESHOLDS_KM]
-    head = f"{'':<28}{'n':>6}" + "".join(f"{k:>9}" for k in keys) + f"{'median km':>12}"
+    head = f"{'':<36}{'n':>6}" + "".join(f"{k:>9}" for k in keys) + f"{'median km':>12}"
     lines = [title] if title else []
     lines += [head, "-" * len(head)]
     for name, s in rows.items():
         med = s.get("median_km")
-        lines.append(f"{name:<28}{s['n']:>6}"
+        lines.append(f"{name:<36}{s['n']:>6}"
                      + "".join(f"{s['accuracy'][k]:>8.2f}%" for k in keys)
                      + f"{'-' if med is None else f'{med:.1f}':>12}")
     return "\n".join(lines)
+
+
+def read_ground_truth(path) -> dict[str, tuple[float, float]]:
+    """Ground truth CSV as {file: (lat, lon)}; columns ``file, lat, lon`` or IM2GPS-style
+    ``IMG_ID, LAT, LON``."""
+    import csv
+    from pathlib import Path
+
+    from vlm_vpr_ros.errors import DataError
+
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"ground truth CSV not found: {path}")
+    with path.open(newline="", encoding="utf-8") as fh:
+        reader = csv.DictReader(fh)
+        cols = reader.fieldnames or []
+        for fcol, lacol, locol in (("file", "lat", "lon"), ("IMG_ID", "LAT", "LON")):
+            if {fcol, lacol, locol} <= set(cols):
+                break
+        else:
+            raise DataError(f"{path}: needs columns file,lat,lon or IMG_ID,LAT,LON; has {cols}")
+        out = {}
+        for n, row in enumerate(reader, start=2):
+            try:
+                out[row[fcol]] = (float(row[lacol]), float(row[locol]))
+            except (TypeError, ValueError):
+                raise DataError(f"{path}:{n}: bad coordinates {row}") from None
+    return out
+
+
+def _float(v) -> float | None:
+    try:
+        x = float(v)
+    except (TypeError, ValueError):
+        return None
+    return x if math.isfinite(x) else None
+
+
+def evaluate_results_csv(results_csv, ground_truth_csv) -> tuple[dict, dict]:
+    """Summary (JSON shape of ``vlm-vpr evaluate``) of a results CSV, plus extra statistics."""
+    import csv
+    import os
+
+    from vlm_vpr_ros.errors import DataError
+
+    gt = read_ground_truth(ground_truth_csv)
+    gt_base = {os.path.basename(k): v for k, v in gt.items()}
+    try:
+        fh = open(results_csv, newline="", encoding="utf-8")
+    except OSError as exc:
+        raise DataError(f"cannot read results {results_csv}: {exc}") from exc
+    with fh:
+        rows = list(csv.DictReader(fh))
+    est, truth, sigma, flagged, missing = [], [], [], 0, 0
+    for row in rows:
+        g = gt.get(row.get("file", "")) or gt_base.get(os.path.basename(row.get("file", "")))
+        if g is None:
+            missing += 1
+            continue
+        lat, lon = _float(row.get("lat")), _float(row.get("lon"))
+        est.append(None if lat is None or lon is None else (lat, lon))
+        truth.append(g)
+        sigma.append(_float(row.get("uncertainty_m")))
+        flagged += bool(row.get("flags"))
+    errs = errors_km(est, truth)
+    covered = sum(1 for e, s in zip(errs, sigma) if e is not None and s is not None
+                  and e * 1000.0 <= s)
+    extra = {"coverage_pct": 100.0 * covered / len(errs) if errs else 0.0,
+             "flagged": flagged, "missing_gt": missing}
+    return summarize(errs), extra

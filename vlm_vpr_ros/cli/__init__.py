@@ -45,11 +45,13 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    level = logging.WARNING if args.quiet else (
-        logging.INFO if args.verbose < 2 else logging.DEBUG)
     # The CLI (not the library) configures logging; logs go to stderr so --json stays clean.
-    logging.basicConfig(level=level, stream=sys.stderr,
+    # Default: our INFO messages, other libraries' warnings; -v: everything at INFO; -vv: DEBUG.
+    root_level = {0: logging.WARNING, 1: logging.INFO}.get(args.verbose, logging.DEBUG)
+    logging.basicConfig(level=root_level, stream=sys.stderr,
                         format="%(levelname)s %(name)s: %(message)s")
+    logging.getLogger("vlm_vpr_ros").setLevel(
+        logging.WARNING if args.quiet else min(root_level, logging.INFO))
     try:
         rc = args.func(args)
     except VlmVprError as exc:

@@ -1,0 +1,83 @@
+"""Argument groups shared by the sub-commands (priors, localizer switches, descriptor options)."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import os
+from pathlib import Path
+from typing import Iterable
+
+from vlm_vpr_ros.config import parse_kv
+from vlm_vpr_ros.localizer import LocalizerConfig
+from vlm_vpr_ros.priors import PriorProvider, available_prior_providers, create_prior_provider
+
+
+def add_prior_args(parser: argparse.ArgumentParser) -> None:
+    g = parser.add_argument_group("prior (coarse position guess)")
+    g.add_argument("--prior", metavar="NAME", default=None,
+                   help="prior provider: " + ", ".join(available_prior_providers())
+                   + " (default: none, or recorded with --priors)")
+    g.add_argument("--prior-option", metavar="KEY=VALUE", action="append", default=[],
+                   help="provider setting, repeatable (e.g. lat=48.85 lon=2.35 for 'fixed'; "
+                        "base_url=... model=... for 'openai'; path=... for 'answers')")
+    g.add_argument("--priors", metavar="CSV", default=None,
+                   help="shortcut for --prior recorded --prior-option path=CSV "
+                        "(columns file, lat, lon)")
+    g.add_argument("--prior-timeout", type=float, default=60.0, metavar="S",
+                   help="give up on a prior after S seconds (flagged fallback)")
+
+
+def make_prior_provider(args: argparse.Namespace) -> PriorProvider:
+    options = parse_kv(args.prior_option)
+    name = args.prior
+    if args.priors:
+        name = name or "recorded"
+        options.setdefault("path", args.priors)
+    return create_prior_provider(name or "none", options)
+
+
+def add_localizer_args(parser: argparse.ArgumentParser) -> None:
+    g = parser.add_argument_group("localizer")
+    g.add_argument("--top-p", type=int, default=50, metavar="N",
+                   help="references retrieved before re-ranking (default 50)")
+    g.add_argument("--no-submap", action="store_true",
+                   help="search the whole map even with a prior (ablation)")
+    g.add_argument("--no-rerank", action="store_true",
+                   help="keep the best descriptor match instead of re-ranking by distance to "
+                        "the prior (ablation)")
+    g.add_argument("--n-submaps", type=int, default=1, metavar="N",
+                   help="search the N submaps nearest to the prior (default 1)")
+
+
+def localizer_config(args: argparse.Namespace) -> LocalizerConfig:
+    return LocalizerConfig(top_p=args.top_p, use_submaps=not args.no_submap,
+                           rerank=not args.no_rerank, n_submaps=args.n_submaps)
+
+
+def add_descriptor_option_args(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--descriptor-option", metavar="KEY=VALUE", action="append", default=[],
+                        help="descriptor setting, repeatable (e.g. pca_dim=128, device=cuda)")
+    parser.add_argument("--weights", metavar="PATH", default=None,
+                        help="checkpoint file of a deep descriptor (default: torch hub cache)")
+
+
+def descriptor_options(args: argparse.Namespace) -> dict:
+    opts = parse_kv(args.descriptor_option)
+    if args.weights:
+        opts["weights"] = args.weights
+    return opts
+
+
+def write_csv_atomic(path: str | os.PathLike[str], fieldnames: list[str],
+                     rows: Iterable[dict]) -> None:
+    """Write a CSV through a temporary file and ``os.replace``."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    with tmp.open("w", newline="", encoding="utf-8") as fh:
+        w = csv.DictWriter(fh, fieldnames=fieldnames, extrasaction="ignore")
+        w.writeheader()
+        for row in rows:
+            w.writerow(row)
+    os.replace(tmp, path)

@@ -1,0 +1,205 @@
+"""Building a map from geotagged images: resumable descriptor extraction, partition, FAISS."""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import json
+import logging
+import shutil
+import time
+from pathlib import Path
+from typing import Any, Iterator, Mapping
+
+import numpy as np
+
+from vlm_vpr_ros.descriptors import GlobalDescriptor, create_descriptor
+from vlm_vpr_ros.errors import DataError, ImageDecodeError, MapError
+from vlm_vpr_ros.imageio import load_image
+from vlm_vpr_ros.map_io import (MANIFEST, ReferenceMap, Submap, atomic_save_npy, atomic_save_npz,
+                                atomic_write_json)
+from vlm_vpr_ros.partition import make_partition
+from vlm_vpr_ros.priors.simple import valid_latlon
+
+log = logging.getLogger(__name__)
+CHUNK = 128
+
+
+def read_coords_csv(path: str | Path) -> list[tuple[str, float, float]]:
+    """Read ``file, lat, lon`` rows; invalid coordinates are a DataError naming the row."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"coordinates CSV not found: {path}")
+    rows: list[tuple[str, float, float]] = []
+    with path.open(newline="", encoding="utf-8") as fh:
+        reader = csv.DictReader(fh)
+        missing = {"file", "lat", "lon"} - set(reader.fieldnames or [])
+        if missing:
+            raise DataError(f"{path}: missing column(s) {sorted(missing)}; "
+                            f"has {reader.fieldnames}")
+        for n, row in enumerate(reader, start=2):
+            try:
+                lat, lon = float(row["lat"]), float(row["lon"])
+            except (TypeError, ValueError):
+                raise DataError(f"{path}:{n}: lat/lon not numbers: {row}") from None
+            if not valid_latlon(lat, lon):
+                raise DataError(f"{path}:{n}: ({lat}, {lon}) out of range")
+            rows.append((row["file"], lat, lon))
+    if not rows:
+        raise DataError(f"{path}: no rows")
+    return rows
+
+
+def _progress(iterable, total: int, desc: str, enabled: bool):
+    if not enabled:
+        return iterable
+    from tqdm import tqdm
+
+    return tqdm(iterable, total=total, desc=desc, unit="img", disable=None, leave=False)
+
+
+def _fingerprint(rows, descriptor: GlobalDescriptor, partition: str, clusters: int) -> str:
+    h = hashlib.sha256()
+    ident = {k: v for k, v in descriptor.identity().items() if k != "dim"}
+    h.update(json.dumps([ident, partition, clusters], sort_keys=True, default=str).encode())
+    for f, la, lo in rows:
+        h.update(f"{f}\t{la!r}\t{lo!r}\n".encode())
+    return h.hexdigest()
+
+
+def assemble_map(desc: np.ndarray, coords: np.ndarray, ids: list[str], identity: dict,
+                 state: Mapping[str, np.ndarray], partition: str, clusters: int = 100,
+                 seed: int = 0, extra: Mapping[str, Any] | None = None) -> ReferenceMap:
+    """Partition references and build one IndexFlatL2 per submap (in memory)."""
+    import faiss
+
+    part = make_partition(partition, coords[:, 0], coords[:, 1], clusters, seed)
+    submaps = []
+    for k, name in enumerate(part.names):
+        sel = np.flatnonzero(part.labels == k)
+        index = faiss.IndexFlatL2(desc.shape[1])
+        index.add(np.ascontiguousarray(desc[sel], dtype=np.float32))
+        submaps.append(Submap(name, tuple(float(c) for c in part.centroids[k]),
+                              coords[sel].astype(np.float64), [ids[i] for i in sel], index))
+    manifest = {"descriptor": identity,
+                "partition": {"method": part.method, "params": part.params},
+                "source": dict(extra or {})}
+    return ReferenceMap(manifest, submaps, dict(state))
+
+
+def _images(root: Path, rows, idx) -> Iterator[tuple[int, np.ndarray | None]]:
+    for i in idx:
+        try:
+            yield i, load_image(root / rows[i][0])
+        except ImageDecodeError as exc:
+            log.warning("skipping reference: %s", exc)
+            yield i, None
+
+
+def build_map(images_dir: str | Path, coords_csv: str | Path, out_dir: str | Path,
+              descriptor: str = "vlad_rootsift", descriptor_config: Mapping | None = None,
+              partition: str = "kmeans", clusters: int = 100, overwrite: bool = False,
+              progress: bool = True, seed: int = 0) -> ReferenceMap:
+    """Build (or resume building) a map folder; see the README "Map format" section."""
+    images_dir, out_dir = Path(images_dir), Path(out_dir)
+    rows = read_coords_csv(coords_csv)
+    desc = create_descriptor(descriptor, descriptor_config)
+    fp = _fingerprint(rows, desc, partition, clusters)
+    work = out_dir / ".build"
+    if (out_dir / MANIFEST).exists():
+        old = json.loads((out_dir / MANIFEST).read_text()).get("source", {}).get("fingerprint")
+        if old == fp and not overwrite:
+            log.info("map %s is up to date", out_dir)
+            return ReferenceMap.load(out_dir)
+        if not overwrite:
+            raise MapError(f"{out_dir} already holds a different map; pass --overwrite to "
+                           "replace it")
+        shutil.rmtree(out_dir)
+    elif out_dir.exists() and any(p.name != ".build" for p in out_dir.iterdir()):
+        if not overwrite:
+            raise MapError(f"{out_dir} exists and is not a map; pass --overwrite or choose "
+                           "another --out")
+        shutil.rmtree(out_dir)
+    work.mkdir(parents=True, exist_ok=True)
+    job = work / "job.json"
+    if job.exists() and json.loads(job.read_text()).get("fingerprint") != fp:
+        log.info("discarding a partial build with other settings")
+        shutil.rmtree(work)
+        work.mkdir(parents=True)
+    atomic_write_json(job, {"fingerprint": fp, "n": len(rows)})
+    t0 = time.monotonic()
+    if desc.needs_fit:
+        _fit(desc, images_dir, rows, work, progress)
+    identity = desc.identity()
+    feats, ok = _extract(desc, images_dir, rows, work, progress)
+    skipped = [rows[i][0] for i in range(len(rows)) if not ok[i]]
+    keep = np.flatnonzero(ok)
+    if len(keep) == 0:
+        raise MapError("no reference image could be read")
+    coords = np.array([[rows[i][1], rows[i][2]] for i in keep], dtype=np.float64)
+    ids = [rows[i][0] for i in keep]
+    ref_map = assemble_map(feats[keep], coords, ids, identity, desc.state_arrays(), partition,
+                           clusters, seed, extra={"fingerprint": fp, "rows": len(rows),
+                                                  "skipped": skipped})
+    ref_map.save(out_dir)
+    shutil.rmtree(work, ignore_errors=True)
+    dt = time.monotonic() - t0
+    log.info("built map %s: %d references (%d skipped), %d submaps, %.1f s (%.1f img/s)",
+             out_dir, len(keep), len(skipped), len(ref_map.submaps), dt, len(rows) / dt)
+    return ref_map
+
+
+def _fit(desc: GlobalDescriptor, root: Path, rows, work: Path, progress: bool) -> None:
+    state_file = work / "descriptor_state.npz"
+    if state_file.exists():
+        with np.load(state_file, allow_pickle=False) as npz:
+            desc.load_state({k: npz[k] for k in npz.files})
+        log.info("resumed fitted descriptor state")
+        return
+    limit = int(desc.config.get("fit_max_images", 2000))
+    idx = np.unique(np.linspace(0, len(rows) - 1, min(limit, len(rows))).astype(int))
+    images = (im for _, im in _progress(_images(root, rows, idx), len(idx), "fit", progress)
+              if im is not None)
+    desc.fit(images, progress=progress)
+    atomic_save_npz(state_file, desc.state_arrays())
+
+
+def _extract(desc: GlobalDescriptor, root: Path, rows, work: Path, progress: bool):
+    n = len(rows)
+    feats = np.zeros((n, desc.dim), np.float32)
+    ok = np.zeros(n, bool)
+    starts = range(0, n, CHUNK)
+    bar = _progress(None, n, "describe", progress) if progress else None
+    for s in starts:
+        part, okf = work / f"chunk_{s:08d}.npy", work / f"chunk_{s:08d}.ok.npy"
+        e = min(n, s + CHUNK)
+        if part.exists() and okf.exists():
+            feats[s:e], ok[s:e] = np.load(part), np.load(okf)
+        else:
+            good, images = [], []
+            for i, im in _images(root, rows, range(s, e)):
+                if im is not None:
+                    good.append(i)
+                    images.append(im)
+            if images:
+                feats[good] = desc.describe(images)
+                ok[good] = True
+            atomic_save_npy(part, feats[s:e])
+            atomic_save_npy(okf, ok[s:e])
+        if bar is not None:
+            bar.update(e - s)
+    if bar is not None:
+        bar.close()
+    return feats, ok
+
+
+def read_file_column(path: str | Path) -> list[str]:
+    """The ``file`` column of a queries CSV (other columns are ignored)."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"queries CSV not found: {path}")
+    with path.open(newline="", encoding="utf-8") as fh:
+        reader = csv.DictReader(fh)
+        if "file" not in (reader.fieldnames or []):
+            raise DataError(f"{path}: needs a 'file' column; has {reader.fieldnames}")
+        return [row["file"] for row in reader if row.get("file")]

@@ -1,0 +1,212 @@
+"""The map folder: versioned ``manifest.json`` + per-submap FAISS indices, coordinates and ids.
+
+Layout::
+
+    MAP/manifest.json              format, version, descriptor identity, metric, partition, counts,
+                                   submap centroids, size + sha256 of every file
+    MAP/descriptor_state.npz       fitted descriptor state (codebook, PCA), if any (no pickle)
+    MAP/submaps/<id>.faiss         faiss.IndexFlatL2 of the submap's descriptors
+    MAP/submaps/<id>.coords.npy    (n, 2) float64 lat/lon
+    MAP/submaps/<id>.ids.json      reference ids (image paths relative to the images folder)
+
+Every file is written to a temporary name and moved into place with ``os.replace``; the manifest
+is written last, so a folder with a manifest is always complete.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from vlm_vpr_ros import __version__
+from vlm_vpr_ros.errors import MapError
+
+log = logging.getLogger(__name__)
+
+MAP_FORMAT = "vlm_vpr_ros.map"
+MAP_VERSION = 1
+METRIC = "squared_l2"
+MANIFEST = "manifest.json"
+#: identity keys that must agree between a map and the query-time descriptor
+IDENTITY_KEYS = ("name", "dim", "release", "preprocessing")
+
+
+# -- atomic file helpers ----------------------------------------------------------------------
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    with open(tmp, "wb") as fh:
+        fh.write(data)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+def atomic_write_json(path: Path, obj: Any) -> None:
+    atomic_write_bytes(path, (json.dumps(obj, indent=2, sort_keys=False) + "\n").encode())
+
+
+def atomic_save_npy(path: Path, arr: np.ndarray) -> None:
+    import io
+
+    buf = io.BytesIO()
+    np.save(buf, np.ascontiguousarray(arr), allow_pickle=False)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def atomic_save_npz(path: Path, arrays: Mapping[str, np.ndarray]) -> None:
+    import io
+
+    buf = io.BytesIO()
+    np.savez(buf, **{k: np.ascontiguousarray(v) for k, v in arrays.items()})
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def atomic_write_index(path: Path, index: Any) -> None:
+    import faiss
+
+    atomic_write_bytes(path, faiss.serialize_index(index).tobytes())
+
+
+def sha256_file(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+# -- the in-memory map ------------------------------------------------------------------------
+@dataclass
+class Submap:
+    id: str
+    centroid: tuple[float, float]
+    coords: np.ndarray  # (n, 2) float64
+    ids: list[str]
+    index: Any  # faiss.IndexFlatL2
+
+    @property
+    def count(self) -> int:
+        return len(self.ids)
+
+
+class ReferenceMap:
+    """A loaded (or freshly built) map. Use :meth:`load`; build with ``map_build.build_map``."""
+
+    def __init__(self, manifest: dict, submaps: list[Submap],
+                 descriptor_state: dict[str, np.ndarray], path: Path | None = None) -> None:
+        self.manifest = manifest
+        self.submaps = submaps
+        self.descriptor_state = descriptor_state
+        self.path = path
+        self._by_id = {s.id: i for i, s in enumerate(submaps)}
+
+    # properties
+    @property
+    def dim(self) -> int:
+        return int(self.manifest["descriptor"]["dim"])
+
+    @property
+    def descriptor_identity(self) -> dict:
+        return self.manifest["descriptor"]
+
+    @property
+    def partition_method(self) -> str:
+        return self.manifest["partition"]["method"]
+
+    @property
+    def n_references(self) -> int:
+        return sum(s.count for s in self.submaps)
+
+    @property
+    def centroids(self) -> np.ndarray:
+        return np.array([s.centroid for s in self.submaps], dtype=np.float64).reshape(-1, 2)
+
+    def submap_index(self, submap_id: str) -> int | None:
+        return self._by_id.get(submap_id)
+
+    def all_descriptors(self) -> np.ndarray:
+        """Reconstruct all descriptors (submap order) from the flat indices."""
+        return np.concatenate([s.index.reconstruct_n(0, s.index.ntotal) for s in self.submaps])
+
+    def all_coords(self) -> np.ndarray:
+        return np.concatenate([s.coords for s in self.submaps])
+
+    def all_ids(self) -> list[str]:
+        return [i for s in self.submaps for i in s.ids]
+
+    def with_partition(self, method: str, clusters: int = 100, seed: int = 0) -> "ReferenceMap":
+        """The same references and descriptors, re-partitioned in memory (for ablations)."""
+        from vlm_vpr_ros.map_build import assemble_map
+
+        coords = self.all_coords()
+        return assemble_map(self.all_descriptors(), coords, self.all_ids(),
+                            dict(self.manifest["descriptor"]), self.descriptor_state,
+                            method, clusters, seed, extra=self.manifest.get("source", {}))
+
+    # persistence
+    def save(self, path: str | os.PathLike[str]) -> None:
+        """Write the map folder atomically (files first, manifest last)."""
+        path = Path(path)
+        (path / "submaps").mkdir(parents=True, exist_ok=True)
+        files: dict[str, dict] = {}
+        if self.descriptor_state:
+            atomic_save_npz(path / "descriptor_state.npz", self.descriptor_state)
+            files["descriptor_state.npz"] = {}
+        subs = []
+        for s in self.submaps:
+            rel = {"index": f"submaps/{s.id}.faiss", "coords": f"submaps/{s.id}.coords.npy",
+                   "ids": f"submaps/{s.id}.ids.json"}
+            atomic_write_index(path / rel["index"], s.index)
+            atomic_save_npy(path / rel["coords"], s.coords.astype(np.float64))
+            atomic_write_json(path / rel["ids"], s.ids)
+            files.update({v: {} for v in rel.values()})
+            subs.append({"id": s.id, "count": s.count,
+                         "centroid": [round(float(c), 7) for c in s.centroid], "files": rel})
+        for rel in files:
+            p = path / rel
+            files[rel] = {"bytes": p.stat().st_size, "sha256": sha256_file(p)}
+        manifest = dict(self.manifest)
+        manifest.update({
+            "format": MAP_FORMAT, "version": MAP_VERSION, "software": f"vlm_vpr_ros {__version__}",
+            "metric": METRIC, "n_references": self.n_references, "n_submaps": len(subs),
+            "descriptor_state": "descriptor_state.npz" if self.descriptor_state else None,
+            "submaps": subs, "files": files,
+        })
+        atomic_write_json(path / MANIFEST, manifest)
+        self.manifest, self.path = manifest, path
+
+    @classmethod
+    def load(cls, path: str | os.PathLike[str], verify: bool = True) -> "ReferenceMap":
+        """Load and validate a map folder; any inconsistency raises MapError saying what."""
+        from vlm_vpr_ros.map_validate import read_manifest, load_submap, load_state
+
+        path = Path(path)
+        manifest = read_manifest(path)
+        state = load_state(path, manifest, verify)
+        subs = [load_submap(path, manifest, entry, verify) for entry in manifest["submaps"]]
+        total = sum(s.count for s in subs)
+        if total != manifest["n_references"]:
+            raise MapError(f"{path}: submaps hold {total} references, manifest says "
+                           f"{manifest['n_references']}")
+        log.info("loaded map %s: %d references in %d submaps (%s, %s-D)", path, total,
+                 len(subs), manifest["partition"]["method"], manifest["descriptor"]["dim"])
+        return cls(manifest, subs, state, path)
+
+
+def check_descriptor_identity(map_identity: Mapping[str, Any],
+                              query_identity: Mapping[str, Any]) -> None:
+    """Raise MapError when a query-time descriptor would not be comparable with the map's."""
+    diffs = [k for k in IDENTITY_KEYS
+             if map_identity.get(k) != query_identity.get(k)]
+    if diffs:
+        detail = "; ".join(f"{k}: map={map_identity.get(k)!r} query={query_identity.get(k)!r}"
+                           for k in diffs)
+        raise MapError(f"descriptor mismatch between map and query ({detail})")

@@ -1,0 +1,95 @@
+"""Splitting references into submaps: per country (reverse geocoding) or K-means on position."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import sys
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from vlm_vpr_ros.config import choose
+from vlm_vpr_ros.geodesy import haversine_km, latlon_to_unit, spherical_mean, unit_to_latlon
+
+log = logging.getLogger(__name__)
+
+PARTITION_METHODS = ("country", "kmeans", "none")
+
+
+@dataclass
+class Partition:
+    """Submap labels for N references: ``labels[i]`` indexes ``names``."""
+
+    method: str
+    labels: np.ndarray
+    names: list[str]
+    centroids: np.ndarray  # (K, 2) lat/lon per submap
+    params: dict[str, Any] = field(default_factory=dict)
+
+
+def country_codes(lat, lon) -> list[str]:
+    """ISO 3166 alpha-2 code of the nearest populated place (offline, reverse_geocoder)."""
+    import reverse_geocoder as rg
+
+    pts = [(float(a), float(b)) for a, b in zip(np.atleast_1d(lat), np.atleast_1d(lon))]
+    if not pts:
+        return []
+    # reverse_geocoder prints a loading banner on stdout; keep stdout clean for --json users.
+    with contextlib.redirect_stdout(sys.stderr):
+        res = rg.search(pts, mode=1, verbose=False)
+    return [r["cc"] for r in res]
+
+
+def _centroids(lat: np.ndarray, lon: np.ndarray, labels: np.ndarray, k: int) -> np.ndarray:
+    return np.array([spherical_mean(lat[labels == i], lon[labels == i]) for i in range(k)])
+
+
+def partition_country(lat: np.ndarray, lon: np.ndarray) -> Partition:
+    codes = country_codes(lat, lon)
+    names = sorted(set(codes))
+    index = {c: i for i, c in enumerate(names)}
+    labels = np.array([index[c] for c in codes], dtype=np.int64)
+    return Partition("country", labels, names, _centroids(lat, lon, labels, len(names)))
+
+
+def partition_kmeans(lat: np.ndarray, lon: np.ndarray, clusters: int = 100,
+                     seed: int = 0) -> Partition:
+    """K-means on the positions (as unit vectors, so clusters may span the antimeridian).
+    K is clamped to the number of distinct positions; empty clusters are dropped."""
+    from sklearn.cluster import KMeans
+
+    xyz = latlon_to_unit(lat, lon)
+    n_distinct = len(np.unique(np.round(xyz, 9), axis=0))
+    k = max(1, min(int(clusters), n_distinct))
+    if k < clusters:
+        log.info("kmeans: K clamped from %d to %d (distinct positions)", clusters, k)
+    km = KMeans(n_clusters=k, n_init=4, random_state=seed).fit(xyz)
+    used = np.unique(km.labels_)
+    remap = {old: new for new, old in enumerate(used)}
+    labels = np.array([remap[x] for x in km.labels_], dtype=np.int64)
+    cla, clo = unit_to_latlon(km.cluster_centers_[used])
+    names = [f"k{i:03d}" for i in range(len(used))]
+    return Partition("kmeans", labels, names, np.stack([cla, clo], 1),
+                     {"clusters": int(clusters), "effective_clusters": len(used), "seed": seed})
+
+
+def partition_none(lat: np.ndarray, lon: np.ndarray) -> Partition:
+    labels = np.zeros(len(lat), dtype=np.int64)
+    return Partition("none", labels, ["all"], _centroids(lat, lon, labels, 1))
+
+
+def make_partition(method: str, lat, lon, clusters: int = 100, seed: int = 0) -> Partition:
+    lat, lon = np.asarray(lat, np.float64), np.asarray(lon, np.float64)
+    fn = choose(method, {"country": partition_country, "kmeans": partition_kmeans,
+                         "none": partition_none}, "partition method")
+    if method == "kmeans":
+        return fn(lat, lon, clusters, seed)
+    return fn(lat, lon)
+
+
+def nearest_centroids(lat: float, lon: float, centroids: np.ndarray, n: int = 1) -> np.ndarray:
+    """Indices of the ``n`` submap centroids nearest to (lat, lon) by great-circle distance."""
+    d = haversine_km(lat, lon, centroids[:, 0], centroids[:, 1])
+    return np.argsort(np.atleast_1d(d), kind="stable")[:max(1, n)]

@@ -1,0 +1,72 @@
+"""Image → hypothesis: the descriptor stored with a map plus the localizer, in one object."""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from typing import Any, Mapping
+
+import numpy as np
+
+from vlm_vpr_ros.config import from_mapping
+from vlm_vpr_ros.descriptors import GlobalDescriptor, create_descriptor
+from vlm_vpr_ros.errors import MapError
+from vlm_vpr_ros.localizer import Localizer, LocalizerConfig
+from vlm_vpr_ros.map_io import ReferenceMap, check_descriptor_identity
+from vlm_vpr_ros.priors.base import PriorResult
+from vlm_vpr_ros.types import Hypothesis
+
+log = logging.getLogger(__name__)
+
+
+def descriptor_for_map(ref_map: ReferenceMap, expect: str | None = None,
+                       options: Mapping[str, Any] | None = None) -> GlobalDescriptor:
+    """Create the query-time descriptor of a map (its stored config + ``options`` such as
+    ``weights``/``device``) and check it is the same as the map's."""
+    ident = ref_map.descriptor_identity
+    if expect and expect != ident["name"]:
+        raise MapError(f"the map at {ref_map.path} was built with descriptor "
+                       f"{ident['name']!r}, but {expect!r} was requested")
+    desc = create_descriptor(ident["name"], {**ident.get("config", {}), **dict(options or {})})
+    if ref_map.descriptor_state:
+        desc.load_state(ref_map.descriptor_state)
+    check_descriptor_identity(ident, desc.identity())
+    return desc
+
+
+class LocalizationPipeline:
+    """Bundle of map, descriptor and localizer used by the CLI, the node and the evaluators."""
+
+    def __init__(self, ref_map: ReferenceMap, descriptor: GlobalDescriptor,
+                 localizer: Localizer) -> None:
+        self.map = ref_map
+        self.descriptor = descriptor
+        self.localizer = localizer
+
+    @classmethod
+    def open(cls, map_dir: str | os.PathLike[str], descriptor: str | None = None,
+             localizer: LocalizerConfig | Mapping[str, Any] | None = None,
+             descriptor_config: Mapping[str, Any] | None = None,
+             verify: bool = True) -> "LocalizationPipeline":
+        ref_map = ReferenceMap.load(map_dir, verify=verify)
+        desc = descriptor_for_map(ref_map, descriptor, descriptor_config)
+        if not isinstance(localizer, LocalizerConfig):
+            localizer = from_mapping(LocalizerConfig, localizer, "localizer")
+        return cls(ref_map, desc, Localizer(ref_map, localizer))
+
+    def describe(self, image: np.ndarray) -> np.ndarray:
+        return self.descriptor.describe_one(image)
+
+    def localize_descriptor(self, desc: np.ndarray,
+                            prior_result: PriorResult | None = None) -> Hypothesis:
+        return self.localizer.localize(desc, prior_result)
+
+    def localize_image(self, image: np.ndarray,
+                       prior_result: PriorResult | None = None) -> Hypothesis:
+        t0 = time.perf_counter()
+        desc = self.describe(image)
+        t1 = time.perf_counter()
+        hyp = self.localize_descriptor(desc, prior_result)
+        hyp.timings_ms["descriptor_ms"] = (t1 - t0) * 1e3
+        return hyp
