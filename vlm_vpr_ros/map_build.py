@@ -13,6 +13,7 @@ from typing import Any, Iterator, Mapping
 
 import numpy as np
 
+from vlm_vpr_ros.config import choose
 from vlm_vpr_ros.descriptors import GlobalDescriptor, create_descriptor
 from vlm_vpr_ros.errors import DataError, ImageDecodeError, MapError
 from vlm_vpr_ros.imageio import load_image
@@ -58,10 +59,12 @@ def _progress(iterable, total: int, desc: str, enabled: bool):
     return tqdm(iterable, total=total, desc=desc, unit="img", disable=None, leave=False)
 
 
-def _fingerprint(rows, descriptor: GlobalDescriptor, partition: str, clusters: int) -> str:
+def _fingerprint(rows, descriptor: GlobalDescriptor, partition: str, clusters: int,
+                 index: str) -> str:
     h = hashlib.sha256()
     ident = {k: v for k, v in descriptor.identity().items() if k != "dim"}
-    h.update(json.dumps([ident, partition, clusters], sort_keys=True, default=str).encode())
+    h.update(json.dumps([ident, partition, clusters, index], sort_keys=True,
+                        default=str).encode())
     for f, la, lo in rows:
         h.update(f"{f}\t{la!r}\t{lo!r}\n".encode())
     return h.hexdigest()
@@ -69,22 +72,36 @@ def _fingerprint(rows, descriptor: GlobalDescriptor, partition: str, clusters: i
 
 def assemble_map(desc: np.ndarray, coords: np.ndarray, ids: list[str], identity: dict,
                  state: Mapping[str, np.ndarray], partition: str, clusters: int = 100,
-                 seed: int = 0, extra: Mapping[str, Any] | None = None) -> ReferenceMap:
-    """Partition references and build one IndexFlatL2 per submap (in memory)."""
-    import faiss
-
+                 seed: int = 0, extra: Mapping[str, Any] | None = None,
+                 index: str = "flat") -> ReferenceMap:
+    """Partition references and build one exact L2 index per submap (in memory).
+    ``index``: "flat" (float32) or "fp16" (half the memory and scan time, fp16-rounded)."""
     part = make_partition(partition, coords[:, 0], coords[:, 1], clusters, seed)
     submaps = []
     for k, name in enumerate(part.names):
         sel = np.flatnonzero(part.labels == k)
-        index = faiss.IndexFlatL2(desc.shape[1])
-        index.add(np.ascontiguousarray(desc[sel], dtype=np.float32))
+        faiss_index = new_index(index, desc.shape[1])
+        faiss_index.add(np.ascontiguousarray(desc[sel], dtype=np.float32))
         submaps.append(Submap(name, tuple(float(c) for c in part.centroids[k]),
-                              coords[sel].astype(np.float64), [ids[i] for i in sel], index))
-    manifest = {"descriptor": identity,
+                              coords[sel].astype(np.float64), [ids[i] for i in sel],
+                              faiss_index))
+    manifest = {"descriptor": identity, "index": index,
                 "partition": {"method": part.method, "params": part.params},
                 "source": dict(extra or {})}
     return ReferenceMap(manifest, submaps, dict(state))
+
+
+INDEX_TYPES = ("flat", "fp16")
+
+
+def new_index(kind: str, dim: int) -> Any:
+    """An empty exact L2 index: "flat" = IndexFlatL2, "fp16" = fp16 scalar-quantized."""
+    import faiss
+
+    choose(kind, dict.fromkeys(INDEX_TYPES), "index type")
+    if kind == "flat":
+        return faiss.IndexFlatL2(dim)
+    return faiss.IndexScalarQuantizer(dim, faiss.ScalarQuantizer.QT_fp16, faiss.METRIC_L2)
 
 
 def _images(root: Path, rows, idx) -> Iterator[tuple[int, np.ndarray | None]]:
@@ -99,12 +116,13 @@ def _images(root: Path, rows, idx) -> Iterator[tuple[int, np.ndarray | None]]:
 def build_map(images_dir: str | Path, coords_csv: str | Path, out_dir: str | Path,
               descriptor: str = "vlad_rootsift", descriptor_config: Mapping | None = None,
               partition: str = "kmeans", clusters: int = 100, overwrite: bool = False,
-              progress: bool = True, seed: int = 0) -> ReferenceMap:
+              progress: bool = True, seed: int = 0, index: str = "flat") -> ReferenceMap:
     """Build (or resume building) a map folder; see the README "Map format" section."""
     images_dir, out_dir = Path(images_dir), Path(out_dir)
     rows = read_coords_csv(coords_csv)
     desc = create_descriptor(descriptor, descriptor_config)
-    fp = _fingerprint(rows, desc, partition, clusters)
+    new_index(index, 8)  # validate the name before any work
+    fp = _fingerprint(rows, desc, partition, clusters, index)
     work = out_dir / ".build"
     if (out_dir / MANIFEST).exists():
         old = json.loads((out_dir / MANIFEST).read_text()).get("source", {}).get("fingerprint")
@@ -140,7 +158,7 @@ def build_map(images_dir: str | Path, coords_csv: str | Path, out_dir: str | Pat
     ids = [rows[i][0] for i in keep]
     ref_map = assemble_map(feats[keep], coords, ids, identity, desc.state_arrays(), partition,
                            clusters, seed, extra={"fingerprint": fp, "rows": len(rows),
-                                                  "skipped": skipped})
+                                                  "skipped": skipped}, index=index)
     ref_map.save(out_dir)
     shutil.rmtree(work, ignore_errors=True)
     dt = time.monotonic() - t0

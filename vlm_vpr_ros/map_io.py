@@ -5,7 +5,8 @@ Layout::
     MAP/manifest.json              format, version, descriptor identity, metric, partition, counts,
                                    submap centroids, size + sha256 of every file
     MAP/descriptor_state.npz       fitted descriptor state (codebook, PCA), if any (no pickle)
-    MAP/submaps/<id>.faiss         faiss.IndexFlatL2 of the submap's descriptors
+    MAP/submaps/<id>.faiss         exact L2 FAISS index of the submap's descriptors (IndexFlatL2,
+                                   or fp16 IndexScalarQuantizer with ``--index fp16``)
     MAP/submaps/<id>.coords.npy    (n, 2) float64 lat/lon
     MAP/submaps/<id>.ids.json      reference ids (image paths relative to the images folder)
 
@@ -90,7 +91,7 @@ class Submap:
     centroid: tuple[float, float]
     coords: np.ndarray  # (n, 2) float64
     ids: list[str]
-    index: Any  # faiss.IndexFlatL2
+    index: Any  # faiss.IndexFlatL2 or fp16 IndexScalarQuantizer
 
     @property
     def count(self) -> int:
@@ -149,7 +150,8 @@ class ReferenceMap:
         coords = self.all_coords()
         return assemble_map(self.all_descriptors(), coords, self.all_ids(),
                             dict(self.manifest["descriptor"]), self.descriptor_state,
-                            method, clusters, seed, extra=self.manifest.get("source", {}))
+                            method, clusters, seed, extra=self.manifest.get("source", {}),
+                            index=self.manifest.get("index", "flat"))
 
     # persistence
     def save(self, path: str | os.PathLike[str]) -> None:

@@ -91,6 +91,11 @@ def load_submap(path: Path, manifest: dict, entry: Any, verify: bool):
     except RuntimeError as exc:
         raise MapError(f"{path}: cannot read FAISS index {files['index']}: "
                        f"{str(exc).splitlines()[0]}") from exc
+    kind = manifest.get("index", "flat")
+    expected = {"flat": faiss.IndexFlatL2, "fp16": faiss.IndexScalarQuantizer}.get(kind)
+    if expected is None or not isinstance(index, expected):
+        raise MapError(f"{path}: submap {sid} index is {type(index).__name__}, manifest says "
+                       f"{kind!r}")
     if index.d != dim:
         raise MapError(f"{path}: submap {sid} index has dim {index.d}, manifest says {dim}")
     if index.ntotal != count:

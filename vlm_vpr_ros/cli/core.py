@@ -29,6 +29,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="submaps: one per country or K-means clusters of positions")
     p.add_argument("--clusters", type=int, default=100, metavar="K",
                    help="K for --partition kmeans (clamped to the data; default 100)")
+    p.add_argument("--index", choices=["flat", "fp16"], default="flat",
+                   help="flat: exact float32; fp16: half the memory and query time "
+                        "(descriptors rounded to float16)")
     p.add_argument("--overwrite", action="store_true", help="replace a different existing map")
     add_descriptor_option_args(p)
     p.set_defaults(func=cmd_build_map)
@@ -71,7 +74,7 @@ def cmd_build_map(args: argparse.Namespace) -> int:
 
     m = build_map(args.images, args.coords, args.out, descriptor=args.descriptor,
                   descriptor_config=descriptor_options(args), partition=args.partition,
-                  clusters=args.clusters, overwrite=args.overwrite)
+                  clusters=args.clusters, overwrite=args.overwrite, index=args.index)
     print(f"map {args.out}: {m.n_references} references, {len(m.submaps)} submaps "
           f"({m.partition_method}), descriptor {m.descriptor_identity['name']} "
           f"{m.dim}-D")

@@ -1,0 +1,174 @@
+"""Localizer: FAISS retrieval vs NumPy brute force, re-rank, submap choice, flags, uncertainty."""
+
+import math
+
+import numpy as np
+import pytest
+
+from vlm_vpr_ros.errors import ConfigError, DescriptorError
+from vlm_vpr_ros.geodesy import haversine_km
+from vlm_vpr_ros.localizer import Localizer, LocalizerConfig
+from vlm_vpr_ros.map_build import assemble_map
+from vlm_vpr_ros.priors.base import Prior, PriorResult
+
+# real cities (lat, lon) → clusters of references around them
+CITIES = {"paris": (48.8566, 2.3522), "tokyo": (35.6762, 139.6503),
+          "nairobi": (-1.2921, 36.8219), "lima": (-12.0464, -77.0428)}
+
+
+def synthetic_map(method="kmeans", clusters=4, n_per=40, dim=32, seed=0):
+    rng = np.random.default_rng(seed)
+    coords, ids = [], []
+    for name, (la, lo) in CITIES.items():
+        for i in range(n_per):
+            coords.append((la + rng.normal(0, 0.05), lo + rng.normal(0, 0.05)))
+            ids.append(f"{name}_{i:03d}.jpg")
+    desc = rng.normal(size=(len(ids), dim)).astype(np.float32)
+    desc /= np.linalg.norm(desc, axis=1, keepdims=True)
+    ident = {"name": "synthetic", "dim": dim, "config": {}, "preprocessing": {}}
+    return assemble_map(desc, np.array(coords), ids, ident, {}, method, clusters), desc, ids
+
+
+def prior_at(lat, lon):
+    return PriorResult(Prior(lat, lon, "test"), "test")
+
+
+def brute_force(desc_db, q, rows, k):
+    d = ((desc_db[rows] - q) ** 2).sum(1)
+    order = np.argsort(d, kind="stable")[:k]
+    return [rows[i] for i in order], d[order]
+
+
+def test_search_equals_numpy_brute_force_global_and_submap():
+    m, desc, ids = synthetic_map()
+    loc = Localizer(m, LocalizerConfig(top_p=15))
+    rng = np.random.default_rng(1)
+    for _ in range(10):
+        q = rng.normal(size=desc.shape[1]).astype(np.float32)
+        cands = loc.search(q, list(range(len(m.submaps))), 15)
+        ref_rows, ref_d = brute_force(desc, q, np.arange(len(ids)), 15)
+        assert [c.ref_id for c in cands] == [ids[i] for i in ref_rows]
+        np.testing.assert_allclose([c.l2_sq for c in cands], ref_d, rtol=1e-4, atol=1e-5)
+        # one submap: only its members, same order as brute force over them
+        sub = m.submaps[0]
+        rows = np.array([ids.index(i) for i in sub.ids])
+        cands = loc.search(q, [0], 7)
+        sub_rows, _ = brute_force(desc, q, rows, 7)
+        assert [c.ref_id for c in cands] == [ids[i] for i in sub_rows]
+
+
+def test_rerank_chooses_nearest_candidate_to_prior():
+    m, desc, ids = synthetic_map()
+    loc = Localizer(m, LocalizerConfig(top_p=50, use_submaps=False))
+    q = desc[ids.index("tokyo_003.jpg")] + 0.01
+    prior = prior_at(*CITIES["lima"])
+    hyp = loc.localize(q, prior)
+    # independent check: the candidate set is the brute-force top-50; pick min distance to prior
+    rows, _ = brute_force(desc, q, np.arange(len(ids)), 50)
+    coords = np.concatenate([s.coords for s in m.submaps])
+    all_ids = [i for s in m.submaps for i in s.ids]
+    cc = np.array([coords[all_ids.index(ids[r])] for r in rows])
+    best = rows[int(np.argmin(haversine_km(*CITIES["lima"], cc[:, 0], cc[:, 1])))]
+    assert hyp.ref_id == ids[best] and hyp.ref_id.startswith("lima")
+    assert hyp.candidates[0].prior_km <= hyp.candidates[-1].prior_km
+    assert hyp.submap == "*" and "no_submap" in hyp.flags
+
+
+def test_no_rerank_keeps_best_descriptor_match():
+    m, desc, ids = synthetic_map()
+    q = desc[ids.index("tokyo_003.jpg")]
+    hyp = Localizer(m, LocalizerConfig(rerank=False, use_submaps=False)).localize(
+        q, prior_at(*CITIES["lima"]))
+    assert hyp.ref_id == "tokyo_003.jpg" and "no_rerank" in hyp.flags
+    assert "prior_far_from_match" in hyp.flags  # Tokyo is > 2500 km from Lima
+
+
+def test_prior_selects_submap_kmeans():
+    m, desc, ids = synthetic_map()
+    q = desc[ids.index("tokyo_003.jpg")]
+    hyp = Localizer(m).localize(q, prior_at(48.0, 3.0))  # near Paris
+    assert hyp.ref_id.startswith("paris")
+    assert all(c.ref_id.startswith("paris") for c in hyp.candidates)
+    assert hyp.submap in {s.id for s in m.submaps} and not hyp.flagged
+
+
+def test_n_submaps_widens_search():
+    m, desc, ids = synthetic_map()
+    q = desc[ids.index("tokyo_003.jpg")]
+    hyp = Localizer(m, LocalizerConfig(n_submaps=2, rerank=False)).localize(
+        q, prior_at(20.0, 90.0))  # between Tokyo and Nairobi, nearer Tokyo
+    assert "+" in hyp.submap and len(hyp.submap.split("+")) == 2
+    assert hyp.ref_id == "tokyo_003.jpg"
+
+
+def test_country_submap_and_prior_outside_map():
+    m, desc, ids = synthetic_map(method="country")
+    assert {s.id for s in m.submaps} == {"FR", "JP", "KE", "PE"}
+    q = desc[ids.index("paris_001.jpg")]
+    hyp = Localizer(m).localize(q, prior_at(43.6, 1.44))  # Toulouse, France
+    assert hyp.submap == "FR" and hyp.ref_id.startswith("paris")
+    hyp = Localizer(m).localize(q, prior_at(52.52, 13.405))  # Berlin: no German submap
+    assert "prior_not_in_map" in hyp.flags and hyp.submap == "FR"  # nearest centroid
+
+
+def test_no_prior_is_flagged_global_and_failed_prior_flagged():
+    m, desc, ids = synthetic_map()
+    q = desc[ids.index("nairobi_010.jpg")]
+    hyp = Localizer(m).localize(q, None)
+    assert hyp.ref_id == "nairobi_010.jpg" and hyp.flagged
+    assert set(hyp.flags) == {"no_prior", "global"} and hyp.submap == "*"
+    hyp = Localizer(m).localize(q, PriorResult.failure("openai:x", "timeout"))
+    assert "prior_failed" in hyp.flags and hyp.ref_id == "nairobi_010.jpg"
+
+
+def test_uncertainty_is_finite_and_follows_formula():
+    m, desc, ids = synthetic_map()
+    loc = Localizer(m, LocalizerConfig(use_submaps=False))
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        q = rng.normal(size=desc.shape[1]).astype(np.float32)
+        la, lo = rng.uniform(-60, 60), rng.uniform(-180, 180)
+        hyp = loc.localize(q, prior_at(la, lo))
+        assert math.isfinite(hyp.uncertainty_m) and hyp.uncertainty_m >= 25.0
+        best = hyp.candidates[0]
+        by_l2 = sorted(hyp.candidates, key=lambda c: c.l2_sq)  # rivals: most similar first
+        rivals = [c for c in by_l2 if c is not best and c.l2_sq <= best.l2_sq / 0.81][:5]
+        spread = (np.median([haversine_km(best.lat, best.lon, c.lat, c.lon) for c in rivals])
+                  if rivals else 0.0)
+        expect = max(25.0, 1000 * math.hypot(spread, 0.5 * best.prior_km))
+        assert hyp.uncertainty_m == pytest.approx(expect, rel=1e-9)
+    # an exact, distinctive match with an agreeing prior is confident
+    q = desc[ids.index("lima_005.jpg")]
+    hyp = loc.localize(q, prior_at(*CITIES["lima"]))
+    assert hyp.uncertainty_m < 20_000
+
+
+def test_dimension_mismatch_and_bad_config():
+    m, desc, ids = synthetic_map()
+    with pytest.raises(DescriptorError, match="dim 16"):
+        Localizer(m).localize(np.zeros(16, np.float32), None)
+    with pytest.raises(ConfigError):
+        LocalizerConfig(top_p=0)
+
+
+def test_fp16_index_equals_brute_force_on_rounded_descriptors(tmp_path):
+    from vlm_vpr_ros.map_io import ReferenceMap
+
+    rng = np.random.default_rng(5)
+    desc = rng.normal(size=(300, 24)).astype(np.float32)
+    desc /= np.linalg.norm(desc, axis=1, keepdims=True)
+    coords = np.stack([rng.uniform(-50, 50, 300), rng.uniform(-170, 170, 300)], 1)
+    ids = [f"r{i}" for i in range(300)]
+    ident = {"name": "synthetic", "dim": 24, "config": {}, "preprocessing": {}}
+    m = assemble_map(desc, coords, ids, ident, {}, "kmeans", 5, index="fp16")
+    m.save(tmp_path / "m")
+    m = ReferenceMap.load(tmp_path / "m")
+    assert m.manifest["index"] == "fp16"
+    loc = Localizer(m)
+    rounded = desc.astype(np.float16).astype(np.float32)
+    for _ in range(5):
+        q = rng.normal(size=24).astype(np.float32)
+        got = loc.search(q, list(range(len(m.submaps))), 20)
+        ref_rows, ref_d = brute_force(rounded, q, np.arange(300), 20)
+        assert [c.ref_id for c in got] == [ids[i] for i in ref_rows]
+        np.testing.assert_allclose([c.l2_sq for c in got], ref_d, rtol=1e-3, atol=1e-4)
