@@ -13,4 +13,12 @@ PY=${PYTHON:-python3}
 .venv/bin/python -m pip install -q -r requirements.txt
 # The package itself (editable): console scripts vlm-vpr / vlm_vpr_node, share/ data files.
 .venv/bin/python -m pip install -q --no-deps --no-build-isolation -e .
+# Editable installs do not copy setup.py's data_files: register the package in the venv's ament
+# index by hand (what colcon does for a normal install), so get_package_share_directory works
+# with AMENT_PREFIX_PATH=$PWD/.venv.
+mkdir -p .venv/share/ament_index/resource_index/packages
+touch .venv/share/ament_index/resource_index/packages/vlm_vpr_ros
+rm -rf .venv/share/vlm_vpr_ros && mkdir -p .venv/share/vlm_vpr_ros
+ln -sfn "$(pwd)/package.xml" .venv/share/vlm_vpr_ros/package.xml
+ln -sfn "$(pwd)/launch_scripts" .venv/share/vlm_vpr_ros/launch_scripts
 echo "vlm_vpr_ros installed in $(pwd)/.venv — activate with: source .venv/bin/activate"
