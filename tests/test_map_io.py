@@ -145,3 +145,14 @@ def test_interrupted_build_resumes_without_redoing_chunks(tmp_path, demo_data, m
                   descriptor="vlad_rootsift_fast", partition="none", progress=False)
     assert counted["n"] == 71 - 32  # no refit (state resumed), first two chunks not re-read
     assert m.n_references == 71 and not (out / ".build").exists()
+
+
+def test_with_partition_keeps_references_and_descriptors(demo_map):
+    m = ReferenceMap.load(demo_map)
+    c = m.with_partition("country")
+    assert c.partition_method == "country" and c.n_references == m.n_references
+    assert len(c.submaps) == 48  # the demo images come from 48 countries
+    key = {i: d for i, d in zip(m.all_ids(), m.all_descriptors())}
+    for i, d in zip(c.all_ids(), c.all_descriptors()):
+        np.testing.assert_array_equal(key[i], d)
+    assert c.descriptor_identity == m.descriptor_identity
