@@ -121,7 +121,11 @@ def _bag_demo(out: Path, map_dir: Path, queries: Path, priors_csv: Path) -> None
         log.warning("bag demo unavailable (%s)", exc)
         return
     print("[4/4] making a demo bag from the queries and evaluating it ...", flush=True)
+    from vlm_vpr_ros.evaluation import format_table
+
     info = run_bag_demo(out / "bag_demo", map_dir, out / "queries", queries, priors_csv)
+    print(format_table({"bag, prior+country submap+re-rank": info["summary"]},
+                       title="Demo bag evaluated offline (vlm-vpr evaluate-bag)"))
     for key, value in info.items():
         if key != "summary":
             print(f"      {key}: {value}")

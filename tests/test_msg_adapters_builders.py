@@ -1,0 +1,87 @@
+"""msg_adapters.navsat / diagnostics: the NavSatFix and DiagnosticArray the node publishes."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from msg_adapters.diagnostics import diagnostic_array, format_value, level_name, status_values
+from msg_adapters.navsat import (MAX_SIGMA_M, STATUS_FIX, STATUS_NO_FIX, FixPolicy, fix_fields,
+                                 navsat_fix)
+from vlm_vpr_ros.errors import ConfigError
+from vlm_vpr_ros.priors.base import Prior, PriorResult
+from vlm_vpr_ros.types import Hypothesis
+
+
+def hyp(sigma=120.0, flags=(), prior=True) -> Hypothesis:
+    p = Prior(48.85, 2.35, "fixed") if prior else None
+    pr = PriorResult(p, "fixed") if prior else PriorResult.failure("openai:x", "timeout")
+    return Hypothesis(lat=48.8584, lon=2.2945, ref_id="a.jpg", submap="k003",
+                      uncertainty_m=sigma, prior=p, prior_result=pr, flags=tuple(flags))
+
+
+def test_good_fix_is_status_fix_with_enu_covariance():
+    f = fix_fields(hyp(sigma=120.0))
+    assert f.status == STATUS_FIX and not f.flagged
+    assert (f.latitude, f.longitude) == (48.8584, 2.2945)
+    cov = np.array(f.covariance).reshape(3, 3)
+    assert cov[0, 0] == cov[1, 1] == pytest.approx(120.0 ** 2)
+    assert cov[2, 2] == pytest.approx(1000.0 ** 2)  # default altitude sigma
+    assert np.count_nonzero(cov - np.diag(np.diag(cov))) == 0
+    assert f.altitude == 0.0 and math.isfinite(f.altitude)  # NaN would be dropped downstream
+
+
+def test_flagged_fix_policy():
+    h = hyp(sigma=300.0, flags=("no_prior", "prior_failed", "global"), prior=False)
+    f = fix_fields(h)
+    assert f.flagged and f.status == STATUS_NO_FIX
+    assert f.sigma_m == 25_000.0 and f.covariance[0] == 25_000.0 ** 2
+    g = fix_fields(h, FixPolicy(fallback_status="fix", fallback_min_sigma_m=1e5,
+                                altitude_m=35.0, altitude_sigma_m=10.0))
+    assert g.status == STATUS_FIX and g.sigma_m == 1e5
+    assert g.altitude == 35.0 and g.covariance[8] == 100.0
+    big = fix_fields(hyp(sigma=3e6, flags=("prior_far_from_match",)))
+    assert big.sigma_m == 3e6  # the floor never shrinks a larger radius
+
+
+@pytest.mark.parametrize("bad", [math.inf, math.nan, -5.0, 0.0, 1e12])
+def test_covariance_always_finite(bad):
+    f = fix_fields(hyp(sigma=bad))
+    assert all(math.isfinite(v) for v in f.covariance)
+    assert 0 < f.sigma_m <= MAX_SIGMA_M
+
+
+def test_navsatfix_message():
+    from sensor_msgs.msg import NavSatFix, NavSatStatus
+
+    msg = navsat_fix(hyp(sigma=50.0), 1_700_000_000_123_456_789, "camera_link")
+    assert isinstance(msg, NavSatFix)
+    assert (msg.header.stamp.sec, msg.header.stamp.nanosec) == (1_700_000_000, 123_456_789)
+    assert msg.header.frame_id == "camera_link"
+    assert msg.status.status == NavSatStatus.STATUS_FIX and msg.status.service == 0
+    assert msg.position_covariance_type == NavSatFix.COVARIANCE_TYPE_APPROXIMATED
+    assert list(msg.position_covariance)[:5] == [2500.0, 0.0, 0.0, 0.0, 2500.0]
+    flagged = navsat_fix(hyp(flags=("no_prior",), prior=False), 0, "c")
+    assert flagged.status.status == NavSatStatus.STATUS_NO_FIX
+    assert flagged.latitude == pytest.approx(48.8584)  # the guess is still visible
+
+
+def test_diagnostic_array():
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+
+    arr = diagnostic_array(2_500_000_000, "vlm_vpr_node: VPR", "vlm_vpr", "WARN", "flagged",
+                           {"frames_received": 12, "prior_ok": False, "sigma_m": 1234.5678,
+                            "last_error": None})
+    assert isinstance(arr, DiagnosticArray)
+    assert (arr.header.stamp.sec, arr.header.stamp.nanosec) == (2, 500_000_000)
+    st = arr.status[0]
+    assert st.level == DiagnosticStatus.WARN and level_name(st.level) == "WARN"
+    assert (st.name, st.hardware_id, st.message) == ("vlm_vpr_node: VPR", "vlm_vpr", "flagged")
+    assert status_values(arr) == {"frames_received": "12", "prior_ok": "false",
+                                  "sigma_m": "1234.57", "last_error": ""}
+    assert status_values(arr, "other") == {}
+    with pytest.raises(ConfigError, match="choices: OK, WARN, ERROR, STALE"):
+        diagnostic_array(0, "n", "h", "BAD", "", {})
+    assert level_name(2) == "ERROR" and format_value(math.nan) == "nan"

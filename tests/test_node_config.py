@@ -1,0 +1,92 @@
+"""Node parameter schema and validation (pure), the shipped params YAML and launch files."""
+
+from __future__ import annotations
+
+import ast
+import os
+import subprocess
+from pathlib import Path
+
+import pytest
+import yaml
+
+from vlm_vpr_ros.errors import ConfigError
+from vlm_vpr_ros.node_config import PARAMETERS, NodeConfig, from_params
+
+LAUNCH = Path(__file__).resolve().parents[1] / "launch_scripts"
+
+
+def test_defaults_and_nested_settings(tmp_path):
+    cfg = from_params({"map_dir": str(tmp_path), "prior_provider": "fixed", "prior.lat": 1.5,
+                       "prior.lon": 2, "descriptor_options.device": "cpu", "min_period_s": 2,
+                       "use_sim_time": False, "start_type_description_service": True,
+                       "qos_overrides./parameter_events.publisher.depth": 1000})
+    assert cfg.prior == {"lat": 1.5, "lon": 2} and cfg.descriptor_options == {"device": "cpu"}
+    assert cfg.min_period_s == 2.0 and isinstance(cfg.min_period_s, float)
+    assert cfg.mode == "continuous" and cfg.qos == "reliable" and cfg.fallback_status == "no_fix"
+    lc = cfg.localizer_config()
+    assert (lc.top_p, lc.use_submaps, lc.rerank, lc.n_submaps) == (50, True, True, 1)
+    assert set(PARAMETERS) == {f for f in NodeConfig.__dataclass_fields__} - {
+        "prior", "descriptor_options"}
+    assert all(doc for _, doc in PARAMETERS.values())
+
+
+@pytest.mark.parametrize("values,match", [
+    ({"top_pp": 3}, "unknown parameter 'top_pp'; valid: map_dir, descriptor"),
+    ({"top_p": "50"}, "'top_p' must be an int, got '50'"),
+    ({"use_submaps": 1}, "'use_submaps' must be a bool"),
+    ({"min_period_s": "fast"}, "'min_period_s' must be a float"),
+    ({"mode": "sometimes"}, "'mode' is 'sometimes'; choices: continuous, on_trigger"),
+    ({"qos": "fast"}, "choices: reliable, best_effort, sensor_data"),
+    ({"fallback_status": "maybe"}, "choices: no_fix, fix"),
+    ({"prior_timeout_s": 0.0}, "'prior_timeout_s' must be > 0"),
+    ({"min_period_s": -1.0}, "'min_period_s' must be >= 0"),
+    ({"altitude_m": float("nan")}, "'altitude_m' must be finite"),
+    ({"qos_depth": 0}, "'qos_depth' must be in 1..10"),
+    ({"top_p": 0}, "top_p"),
+    ({"subscribe_raw": False}, "nothing to localize"),
+    ({"prior_provider": "oracle"}, "unknown prior provider 'oracle'; choices: .*fixed"),
+    ({"map_dir": ""}, "'map_dir' is required"),
+    ({"map_dir": "/nonexistent/map"}, "is not a folder"),
+])
+def test_invalid_values_are_rejected(tmp_path, values, match):
+    with pytest.raises(ConfigError, match=match):
+        from_params({"map_dir": str(tmp_path), **values})
+
+
+def test_params_yaml_is_valid_and_documents_every_parameter(tmp_path):
+    text = (LAUNCH / "vlm_vpr_params.yaml").read_text()
+    params = yaml.safe_load(text)["/**"]["ros__parameters"]
+    assert set(params) == set(PARAMETERS)  # every parameter is in the documented file
+    for name, value in params.items():
+        if name != "map_dir":
+            assert value == PARAMETERS[name][0], f"{name}: YAML and schema defaults differ"
+    cfg = from_params({**params, "map_dir": str(tmp_path)})
+    assert cfg.map_dir == str(tmp_path)
+    for name in PARAMETERS:
+        assert f"\n    {name}:" in text
+
+
+def test_launch_file_is_valid_python_naming_the_console_script():
+    src = (LAUNCH / "vlm_vpr.launch.py").read_text()
+    tree = ast.parse(src)  # launch/launch_ros are not on PyPI: syntax and content only
+    funcs = [n.name for n in tree.body if isinstance(n, ast.FunctionDef)]
+    assert "generate_launch_description" in funcs
+    assert '"vlm_vpr_node"' in src and "vlm_vpr_params.yaml" in src
+    setup = (LAUNCH.parent / "setup.py").read_text()
+    assert "vlm_vpr_node = vlm_vpr_ros.node:main" in setup
+
+
+def test_run_node_script_rejects_bad_parameters_clearly(tmp_path):
+    """run_node.sh starts the real node; an invalid value stops it with exit 2 and a FATAL line."""
+    script = LAUNCH / "run_node.sh"
+    assert os.access(script, os.X_OK)
+    env = {**os.environ, "ROS_DOMAIN_ID": "97", "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+    proc = subprocess.run([str(script), "-p", f"map_dir:={tmp_path}", "-p", "mode:=sometimes"],
+                          capture_output=True, text=True, timeout=60, env=env)
+    assert proc.returncode == 2
+    assert "invalid configuration" in proc.stderr and "choices: continuous, on_trigger" in \
+        proc.stderr
+    missing = subprocess.run([str(script), str(tmp_path / "nope.yaml")], capture_output=True,
+                             text=True, timeout=30, env=env)
+    assert missing.returncode == 2 and "params file not found" in missing.stderr

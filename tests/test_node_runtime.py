@@ -1,0 +1,270 @@
+"""The node's pure runtime (no ROS): slot, worker, async prior with timeout, relocalize."""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import threading
+import time
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from msg_adapters.image import message_to_rgb
+from vlm_vpr_ros.geodesy import haversine_km
+from vlm_vpr_ros.imageio import load_image
+from vlm_vpr_ros.pipeline import LocalizationPipeline
+from vlm_vpr_ros.priors import create_prior_provider
+from vlm_vpr_ros.priors.base import Prior, PriorProvider, PriorQuery, PriorResult
+from vlm_vpr_ros.runtime import Frame, QueryRuntime, RuntimeConfig, outcome_summary
+
+pytestmark = pytest.mark.timeout(60)
+QUERY = "546314506564628.jpg"  # Sanluri, Sardinia
+TRUTH = (39.55910238557, 8.8888751944543)
+
+
+class SlowPrior(PriorProvider):
+    """A provider that answers after ``delay_s`` on its own thread (the async contract)."""
+
+    name = "slow"
+
+    def __init__(self, delay_s: float, lat: float = TRUTH[0] + 0.05, lon: float = TRUTH[1]):
+        self.delay_s, self.prior = delay_s, Prior(lat, lon, "slow")
+        self.pool = cf.ThreadPoolExecutor(1)
+        self.queries: list[PriorQuery] = []
+        self.cancelled = threading.Event()
+
+    def request(self, query):
+        self.queries.append(query)
+        fut = self.pool.submit(self._answer)
+        fut.add_done_callback(lambda f: f.cancelled() and self.cancelled.set())
+        return fut
+
+    def _answer(self):
+        time.sleep(self.delay_s)
+        return PriorResult(self.prior, "slow", latency_s=self.delay_s)
+
+    def close(self):
+        self.pool.shutdown(wait=False, cancel_futures=True)
+
+
+class BrokenPrior(PriorProvider):
+    name = "broken"
+
+    def request(self, query):
+        raise RuntimeError("socket exploded")
+
+
+@pytest.fixture(scope="module")
+def pipeline(demo_map):
+    return LocalizationPipeline.open(demo_map)
+
+
+@pytest.fixture(scope="module")
+def image(demo_data):
+    return load_image(demo_data / "images" / QUERY)
+
+
+def msg_of(rgb: np.ndarray, stamp_ns: int = 1_000_000_123, encoding: str = "rgb8"):
+    h, w = rgb.shape[:2]
+    return SimpleNamespace(height=h, width=w, encoding=encoding, is_bigendian=0, step=w * 3,
+                           data=rgb.tobytes())
+
+
+def frame_of(msg, stamp_ns=1_000_000_123) -> Frame:
+    return Frame(msg, stamp_ns, "cam")
+
+
+class Collector:
+    def __init__(self):
+        self.outcomes, self.cond = [], threading.Condition()
+
+    def __call__(self, out):
+        with self.cond:
+            self.outcomes.append(out)
+            self.cond.notify_all()
+
+    def wait(self, n: int, timeout: float = 20.0):
+        with self.cond:
+            assert self.cond.wait_for(lambda: len(self.outcomes) >= n, timeout), \
+                f"only {len(self.outcomes)} of {n} outcomes"
+            return self.outcomes[n - 1]
+
+
+def make(pipeline, provider, **cfg):
+    col = Collector()
+    rt = QueryRuntime(pipeline, provider, RuntimeConfig(**cfg), decode=message_to_rgb,
+                      on_outcome=col)
+    rt.start()
+    return rt, col
+
+
+def test_fix_near_truth_with_fixed_prior(pipeline, image):
+    rt, col = make(pipeline, create_prior_provider("fixed", {"lat": 39.6, "lon": 8.9}),
+                   min_period_s=0.0)
+    try:
+        rt.on_frame(frame_of(msg_of(image), 42_000_000_007))
+        out = col.wait(1)
+    finally:
+        rt.stop()
+    h = out.hypothesis
+    assert out.error == "" and out.trigger == "continuous" and out.frame.stamp_ns == 42_000_000_007
+    assert haversine_km(h.lat, h.lon, *TRUTH) < 1.0 and not h.flagged
+    assert {"decode_ms", "descriptor_ms", "prior_wait_ms", "retrieval_ms", "rerank_ms",
+            "query_ms"} <= set(out.timings_ms)
+    snap = rt.stats.snapshot()
+    assert (snap["frames_received"], snap["frames_processed"], snap["fixes"]) == (1, 1, 1)
+    level, message, values = rt.stats.report()
+    assert level == "OK" and "prior fixed" in message and values["candidates"] >= 1
+    ok, text = outcome_summary(out, 0.0)
+    assert ok and "lat 39.559" in text and "prior fixed" in text
+
+
+def test_slow_prior_does_not_block_intake(pipeline, image):
+    prov = SlowPrior(1.0)
+    rt, col = make(pipeline, prov, min_period_s=0.0, prior_timeout_s=10.0)
+    try:
+        rt.on_frame(frame_of(msg_of(image), 1))
+        while not prov.queries:  # the worker took the frame and asked for the prior
+            time.sleep(0.01)
+        for i in range(300):  # intake keeps working while the prior is pending
+            rt.on_frame(frame_of(msg_of(image), 2 + i))
+        pending = rt.busy and len(col.outcomes) == 0
+        out = col.wait(1)
+    finally:
+        rt.stop()
+    assert pending  # all 300 frames were taken while the first query waited for the VLM
+    snap = rt.stats.snapshot()
+    assert snap["frames_received"] == 301
+    assert snap["frames_dropped"] >= 299 - snap["frames_processed"]  # one slot, by design
+    assert out.frame.stamp_ns == 1 and out.hypothesis.prior.source == "slow"
+    assert prov.queries[0].key == "0.000000001" and prov.queries[0].image.shape == image.shape
+
+
+def test_prior_timeout_gives_flagged_global_fix(pipeline, image):
+    prov = SlowPrior(30.0)
+    rt, col = make(pipeline, prov, min_period_s=0.0, prior_timeout_s=0.3)
+    try:
+        rt.on_frame(frame_of(msg_of(image)))
+        out = col.wait(1)
+        level, message, _ = rt.stats.report()
+    finally:
+        rt.stop()
+    h = out.hypothesis
+    assert h.flagged and {"no_prior", "prior_failed", "global"} <= set(h.flags)
+    assert h.prior_result.reason == "timeout" and h.prior is None
+    assert haversine_km(h.lat, h.lon, *TRUTH) < 1.0  # global retrieval still finds it here
+    assert level == "WARN" and "flagged" in message and "timeout" in message
+
+
+def test_provider_exception_is_a_flagged_fix(pipeline, image):
+    rt, col = make(pipeline, BrokenPrior(), min_period_s=0.0)
+    try:
+        rt.on_frame(frame_of(msg_of(image)))
+        out = col.wait(1)
+    finally:
+        rt.stop()
+    assert out.hypothesis.flagged and "socket exploded" in out.hypothesis.prior_result.reason
+
+
+def test_undecodable_frame_is_skipped_and_counted(pipeline, image):
+    rt, col = make(pipeline, create_prior_provider("none"), min_period_s=0.0)
+    try:
+        rt.on_frame(frame_of(msg_of(image, encoding="yuv444_unknown")))
+        bad = col.wait(1)
+        level, message, _ = rt.stats.report()
+        rt.on_frame(frame_of(msg_of(image)))
+        good = col.wait(2)
+    finally:
+        rt.stop()
+    assert bad.hypothesis is None and bad.error.startswith("undecodable frame")
+    assert level == "WARN" and "undecodable" in message
+    assert good.hypothesis is not None
+    snap = rt.stats.snapshot()
+    assert snap["decode_errors"] == 1 and snap["fixes"] == 1 and snap["query_errors"] == 0
+
+
+def test_unexpected_failure_is_an_error_and_the_worker_survives(pipeline, image):
+    col = Collector()
+
+    def decode(msg):
+        if getattr(msg, "explode", False):
+            raise RuntimeError("bug in a decoder")
+        return message_to_rgb(msg)
+
+    rt = QueryRuntime(pipeline, create_prior_provider("none"), RuntimeConfig(min_period_s=0.0),
+                      decode=decode, on_outcome=col)
+    rt.start()
+    try:
+        bad = msg_of(image)
+        bad.explode = True
+        rt.on_frame(frame_of(bad))
+        first = col.wait(1)
+        level, message, _ = rt.stats.report()
+        rt.on_frame(frame_of(msg_of(image)))
+        second = col.wait(2)
+    finally:
+        rt.stop()
+    assert "RuntimeError: bug in a decoder" in first.error
+    assert level == "ERROR" and "bug in a decoder" in message
+    assert second.hypothesis is not None
+
+
+def test_rate_limit_in_continuous_mode(pipeline, image):
+    rt, col = make(pipeline, create_prior_provider("none"), min_period_s=0.4)
+    msg = msg_of(image)
+    try:
+        t_end = time.monotonic() + 1.5
+        i = 0
+        while time.monotonic() < t_end:
+            rt.on_frame(frame_of(msg, i))
+            i += 1
+            time.sleep(0.01)
+    finally:
+        rt.stop()
+    n = len(col.outcomes)
+    assert 1 <= n <= 1.5 / 0.4 + 1
+    starts = [o.started for o in col.outcomes]
+    assert all(b - a >= 0.4 - 1e-3 for a, b in zip(starts, starts[1:]))
+
+
+def test_on_trigger_mode_queries_only_when_asked(pipeline, image):
+    rt, col = make(pipeline, create_prior_provider("none"), mode="on_trigger",
+                   max_frame_age_s=5.0)
+    try:
+        ticket = rt.request_relocalize()  # no frame yet: scheduled, answered later
+        assert ticket.wait(0.3) is None
+        ok, text = outcome_summary(None, 0.3)
+        assert not ok and "scheduled" in text
+        rt.on_frame(frame_of(msg_of(image), 5))
+        out = ticket.wait(20)
+        assert out is not None and out.trigger == "relocalize" and out.frame.stamp_ns == 5
+        for i in range(20):  # frames alone never start a query in on_trigger mode
+            rt.on_frame(frame_of(msg_of(image), 10 + i))
+        time.sleep(0.5)
+        assert len(col.outcomes) == 1
+        again = rt.request_relocalize().wait(20)  # the latest fresh frame is used at once
+        assert again.frame.stamp_ns == 29
+    finally:
+        rt.stop()
+    assert rt.stats.snapshot()["relocalize_requests"] == 2
+
+
+def test_stop_interrupts_a_hung_prior(pipeline, image):
+    prov = SlowPrior(120.0)
+    rt, col = make(pipeline, prov, min_period_s=0.0, prior_timeout_s=120.0)
+    rt.on_frame(frame_of(msg_of(image)))
+    while not prov.queries:
+        time.sleep(0.01)
+    rt.stop(timeout_s=10.0)
+    assert not rt._thread.is_alive()
+    assert col.outcomes == []  # a query cut short by shutdown publishes nothing
+
+
+def test_runtime_config_rejects_bad_values():
+    from vlm_vpr_ros.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="choices: continuous, on_trigger"):
+        RuntimeConfig(mode="sometimes")
+    with pytest.raises(ConfigError):
+        RuntimeConfig(prior_timeout_s=0)

@@ -1,0 +1,150 @@
+"""The answer parser: hand-written answers in the shapes real VLMs produce, mode differences,
+and a property test that it never raises and never returns an out-of-range position."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from vlm_vpr_ros.errors import ConfigError
+from vlm_vpr_ros.priors.parsing import PARSER_MODES, parse_answer
+
+PARIS = (48.8584, 2.2945)
+
+
+def _close(p, lat, lon, tol=1e-4):
+    assert p.ok, p
+    assert abs(p.lat - lat) < tol and abs(p.lon - lon) < tol, (p.lat, p.lon)
+
+
+@pytest.mark.parametrize("text, method", [
+    ('{"latitude": 48.8584, "longitude": 2.2945}', "json"),
+    ('{"latitude": "48.8584", "longitude": "2.2945", "country": "France"}', "json"),
+    ('```json\n{"latitude": 48.8584, "longitude": 2.2945}\n```', "fenced_json"),
+    ('Sure! Here is my guess:\n```\n{"latitude": 48.8584, "longitude": 2.2945}\n```\nBye',
+     "fenced_json"),
+])
+def test_strict_reads_json_and_fenced_json(text, method):
+    for mode in ("strict", "robust"):
+        p = parse_answer(text, mode)
+        _close(p, *PARIS)
+        assert p.method == method
+
+
+@pytest.mark.parametrize("text, lat, lon", [
+    # JSON embedded in prose (no fence)
+    ('My answer: {"latitude": -33.8568, "longitude": 151.2153} (Sydney).', -33.8568, 151.2153),
+    # nested object with short keys
+    ('{"answer": {"coords": {"lat": 35.6586, "lng": 139.7454}}}', 35.6586, 139.7454),
+    # JSON values with hemisphere letters (a real Gemini habit)
+    ('```json\n{"latitude": "27.1278° N", "longitude": "75.8505° E"}\n```', 27.1278, 75.8505),
+    # truncated JSON: the labelled keys are still readable
+    ('```json\n{"rationale": "x", "latitude": "40.7128", "longitude": "-74.0060", "no',
+     40.7128, -74.0060),
+    # markdown-labelled numbers
+    ("**Latitude:** -33.8651\n\n**Longitude:** 151.2094", -33.8651, 151.2094),
+    ("I estimate the latitude to be approximately 40.748817 and the longitude to be "
+     "approximately -73.985428.", 40.748817, -73.985428),
+    # hemispheres in words and letters, west is negative
+    ("The latitude is approximately 54.4193° N, and the longitude is approximately 2.9353° W.",
+     54.4193, -2.9353),
+    ("It is near 22.9068 S, 43.1729 W, in Rio.", -22.9068, -43.1729),
+    # degree-minute-second
+    ("Coordinates: 40°26'46\"N 79°58'56\"W", 40 + 26 / 60 + 46 / 3600,
+     -(79 + 58 / 60 + 56 / 3600)),
+    ("Latitude: 51° 30.5' N, Longitude: 0° 7.6' W", 51 + 30.5 / 60, -(7.6 / 60)),
+    # labelled pair
+    ("Latitude and Longitude: 41.9028, 12.4964", 41.9028, 12.4964),
+    ("GPS coordinates (approx.): (64.1466, -21.9426)", 64.1466, -21.9426),
+])
+def test_robust_reads_prose_forms_that_strict_rejects(text, lat, lon):
+    _close(parse_answer(text, "robust"), lat, lon)
+    assert not parse_answer(text, "strict").ok or text.startswith("```json")
+
+
+@pytest.mark.parametrize("text", [
+    "I'm unable to provide location details for images.",
+    "I'm sorry, I can't help with that.",
+    "I’m sorry, I can’t help with guessing locations from images.",
+])
+def test_refusals_are_typed_in_every_mode(text):
+    for mode in PARSER_MODES:
+        p = parse_answer(text, mode)
+        assert not p.ok and p.reason == "refusal"
+
+
+def test_no_coordinates_and_empty():
+    unknown = '{"country": "United States", "latitude": "Unknown", "longitude": "Unknown"}'
+    for mode in PARSER_MODES:
+        assert parse_answer(unknown, mode).reason == "no_coordinates"
+        assert parse_answer("", mode).reason == "empty"
+        assert parse_answer(None, mode).reason == "empty"
+        assert parse_answer("   \n", mode).reason == "empty"
+
+
+def test_out_of_range_is_rejected():
+    for mode in PARSER_MODES:
+        p = parse_answer('{"latitude": 95.5, "longitude": 200.0}', mode)
+        assert not p.ok and p.reason == "out_of_range"
+    assert parse_answer('{"latitude": "nan", "longitude": "1"}', "strict").reason == \
+        "out_of_range"
+    # a hemisphere letter on the wrong axis is not a coordinate
+    assert not parse_answer("latitude: 12.5 E, longitude: 40.1 N", "robust").ok
+
+
+def test_first_valid_candidate_wins_after_an_out_of_range_one():
+    text = 'Latitude: 123.4, Longitude: 5.0. Correction: {"latitude": 12.5, "longitude": 5.0}'
+    _close(parse_answer(text, "robust"), 12.5, 5.0)
+
+
+def test_paper_mode_takes_the_first_two_numbers():
+    # the paper's regex reads digits wherever they are, e.g. in a rationale before the JSON
+    text = 'Built in 1889 by Eiffel, 300 m tall. {"latitude": 48.8584, "longitude": 2.2945}'
+    assert parse_answer(text, "paper").reason == "out_of_range"  # 1889, 300
+    _close(parse_answer(text, "robust"), *PARIS)
+    _close(parse_answer("48.8584, 2.2945", "paper"), *PARIS)
+    # the regex has no sign for "-.5"? it does: [-+]?\d*\.\d+
+    _close(parse_answer("-.5 and -3", "paper"), -0.5, 3.0)  # '-3' -> '3': no sign on ints
+
+
+def test_unknown_mode_lists_the_choices():
+    with pytest.raises(ConfigError, match="robust"):
+        parse_answer("{}", "fuzzy")
+
+
+def test_info_fields_are_kept():
+    p = parse_answer('{"country": "France", "city": "Paris", "latitude": 48.85, '
+                     '"longitude": 2.35}', "robust")
+    assert p.info == {"country": "France", "city": "Paris"}
+
+
+_answerish = st.one_of(
+    st.text(max_size=400),
+    st.text(alphabet="{}[]\":,.-+0123456789 NSEW°'′″latitudelongitude\n`json", max_size=400),
+    st.builds(lambda a, b, pre: f'{pre}{{"latitude": {a!r}, "longitude": {b!r}}}',
+              st.one_of(st.floats(allow_nan=True), st.text(max_size=12), st.integers()),
+              st.one_of(st.floats(allow_nan=True), st.text(max_size=12), st.none()),
+              st.sampled_from(["", "```json\n", "Answer: "])),
+)
+
+
+@settings(max_examples=300, deadline=None)
+@given(text=_answerish, mode=st.sampled_from(PARSER_MODES))
+def test_parser_never_raises_and_stays_in_range(text, mode):
+    p = parse_answer(text, mode)
+    if p.ok:
+        assert math.isfinite(p.lat) and math.isfinite(p.lon)
+        assert -90 <= p.lat <= 90 and -180 <= p.lon <= 180
+        assert p.reason == ""
+    else:
+        assert p.reason in ("empty", "refusal", "no_coordinates", "out_of_range")
+
+
+def test_pathological_inputs_are_handled():
+    for text in ["{" * 50_000, "[" * 50_000, "1" * 50_000, "latitude: " * 5_000,
+                 "\x00\ud800" * 100, "12°34'" * 5_000]:
+        for mode in PARSER_MODES:
+            assert parse_answer(text, mode).reason in ("", "no_coordinates", "out_of_range")

@@ -1,0 +1,215 @@
+"""``vlm-vpr evaluate-bag``: localize every camera frame of a bag against a map, offline.
+
+Images and ground truth come straight from the bag (no ROS graph): each frame is paired with the
+``NavSatFix`` nearest in time (header stamps; at most ``max_gt_gap_s`` apart), localized, and the
+run writes ``frames.csv``, ``summary.json``, ``world_map.png``, ``error_cdf.png`` and a results
+bag ``estimates/`` with the estimated ``NavSatFix`` stream (plus the prior and the paired ground
+truth) stamped like the input frames, to view next to it in Foxglove.
+"""
+
+from __future__ import annotations
+
+import bisect
+import collections
+import concurrent.futures as cf
+import csv
+import dataclasses
+import logging
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterator
+
+from vlm_vpr_ros.bags.frames import Frame, GroundTruth, iter_frames, read_ground_truth
+from vlm_vpr_ros.bags.reader import BagReader
+from vlm_vpr_ros.errors import BagError, VlmVprError
+from vlm_vpr_ros.evaluation import errors_km, summarize
+from vlm_vpr_ros.map_io import atomic_write_json
+from vlm_vpr_ros.priors.base import PriorProvider, PriorQuery, PriorResult
+
+log = logging.getLogger(__name__)
+
+FRAME_FIELDS = ["index", "stamp", "key", "gt_lat", "gt_lon", "gt_gap_s", "lat", "lon",
+                "error_km", "prior_lat", "prior_lon", "prior_source", "prior_reason", "submap",
+                "ref_id", "uncertainty_m", "n_candidates", "flags", "descriptor_ms",
+                "retrieval_ms", "rerank_ms", "prior_latency_s"]
+EST_TOPIC, PRIOR_TOPIC, GT_TOPIC = "/vlm_vpr/fix", "/vlm_vpr/prior", "/vlm_vpr/ground_truth"
+FRAME_ID = "vlm_vpr"
+
+
+@dataclass(frozen=True)
+class BagEvalConfig:
+    image_topic: str | None = None  # None: the bag's only Image/CompressedImage topic
+    gt_topic: str | None = None  # None: the bag's only NavSatFix topic
+    max_gt_gap_s: float = 0.5  # frames with no fix this close in time are not scored
+    max_frames: int | None = None
+    prior_timeout_s: float = 60.0
+    window: int = 4  # prior requests in flight ahead of the descriptor work
+
+
+def _pair(gt: GroundTruth, t_ns: int, max_gap_s: float) -> tuple[int | None, float | None]:
+    if not gt.stamps:
+        return None, None
+    i = bisect.bisect_left(gt.stamps, t_ns)
+    best = min((j for j in (i - 1, i) if 0 <= j < len(gt.stamps)),
+               key=lambda j: abs(gt.stamps[j] - t_ns))
+    gap = abs(gt.stamps[best] - t_ns) / 1e9
+    return (best, gap) if gap <= max_gap_s else (None, gap)
+
+
+def _wait(fut: "cf.Future[PriorResult]", source: str, timeout_s: float) -> PriorResult:
+    try:
+        return fut.result(timeout=timeout_s)
+    except cf.TimeoutError:
+        fut.cancel()
+        return PriorResult.failure(source, "timeout", latency_s=timeout_s)
+
+
+def _with_priors(frames: Iterator[Frame], provider: PriorProvider,
+                 window: int) -> Iterator[tuple[Frame, Any]]:
+    """Ask the prior for up to ``window`` frames ahead of the one being localized."""
+    pending: collections.deque = collections.deque()
+    for frame in frames:
+        fut = None
+        if frame.rgb is not None:
+            fut = provider.request(PriorQuery(image=frame.rgb, encoded=frame.encoded,
+                                              key=frame.key))
+        pending.append((frame, fut))
+        if len(pending) > max(0, window):
+            yield pending.popleft()
+    while pending:
+        yield pending.popleft()
+
+
+def evaluate_bag(bag: BagReader, pipeline: Any, provider: PriorProvider,
+                 out_dir: str | os.PathLike[str], config: BagEvalConfig | None = None,
+                 progress: bool = True, plots: bool = True) -> dict:
+    """Run the whole evaluation; returns ``{"n", "accuracy", "median_km", "details"}``."""
+    from vlm_vpr_ros.bags.messages import IMAGE_TYPES, NAVSATFIX
+
+    cfg = config or BagEvalConfig()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    img = bag.find_topic(IMAGE_TYPES, cfg.image_topic, "camera images")
+    gt_info = bag.find_topic((NAVSATFIX,), cfg.gt_topic, "ground truth")
+    gt = read_ground_truth(bag, gt_info.name)
+    if not gt.stamps:
+        log.warning("%s: no usable fix on %s; frames cannot be scored", bag.path, gt_info.name)
+    total = img.count if cfg.max_frames is None else min(img.count or 0, cfg.max_frames)
+    frames = iter_frames(bag, img.name, cfg.max_frames)
+    if progress:
+        from tqdm import tqdm
+
+        frames = tqdm(frames, total=total, desc="evaluate-bag", unit="frame", disable=None)
+    rows: list[dict] = []
+    est_msgs: list[tuple] = []
+    errors: list[str] = []
+    for frame, fut in _with_priors(frames, provider, cfg.window):
+        row, est = _localize_frame(frame, fut, pipeline, provider, gt, cfg, errors)
+        rows.append(row)
+        est_msgs.append(est)
+    _write_csv(out / "frames.csv", rows)
+    decoded = sum(1 for r in rows if "image_error" not in r["flags"])
+    if rows and decoded == 0:
+        raise BagError(f"none of the {len(rows)} frames on {img.name} could be used; first "
+                       f"error: {errors[0] if errors else 'unknown'} (per-frame reasons in "
+                       f"{out / 'frames.csv'})")
+    scored = [r for r in rows if r["gt_lat"] != ""]
+    errs = [None if r["error_km"] == "" else float(r["error_km"]) for r in scored]
+    summary = summarize(errs)
+    outputs = {"frames_csv": str(out / "frames.csv"), "summary_json": str(out / "summary.json")}
+    if est_msgs:
+        outputs["estimates_bag"] = str(_write_estimates(out / "estimates", est_msgs))
+    if plots and scored:
+        outputs.update(_plots(out, scored, summary, bag.path))
+    details = {
+        "bag": str(bag.path), "image_topic": img.name, "gt_topic": gt_info.name,
+        "frames": len(rows), "frames_scored": len(scored),
+        "frames_without_gt": len(rows) - len(scored),
+        "frames_failed": len(rows) - decoded, "bag_complete": bag.complete,
+        "warnings": list(bag.problems) + errors[:5], "outputs": outputs,
+    }
+    result = {**summary, "details": details}
+    atomic_write_json(out / "summary.json", result)
+    return result
+
+
+def _localize_frame(frame: Frame, fut: Any, pipeline: Any, provider: PriorProvider,
+                    gt: GroundTruth, cfg: BagEvalConfig, errors: list[str]) -> tuple[dict, tuple]:
+    gi, gap = _pair(gt, frame.stamp_ns, cfg.max_gt_gap_s)
+    row = {k: "" for k in FRAME_FIELDS}
+    row.update({"index": frame.index, "stamp": f"{frame.stamp_ns / 1e9:.9f}", "key": frame.key,
+                "gt_gap_s": "" if gap is None else f"{gap:.3f}"})
+    truth = None
+    if gi is not None:
+        truth = (gt.lat[gi], gt.lon[gi])
+        row.update({"gt_lat": f"{truth[0]:.7f}", "gt_lon": f"{truth[1]:.7f}"})
+    hyp = None
+    if frame.rgb is None:
+        row.update({"flags": "image_error", "prior_reason": frame.error})
+        errors.append(f"frame {frame.index}: {frame.error}")
+    else:
+        try:
+            hyp = pipeline.localize_image(frame.rgb, _wait(fut, provider.name,
+                                                           cfg.prior_timeout_s))
+        except VlmVprError as exc:
+            row.update({"flags": "error", "prior_reason": str(exc)})
+            errors.append(f"frame {frame.index}: {exc}")
+    if hyp is not None:
+        row.update(hyp.as_row())
+        row.update({k: f"{v:.2f}" for k, v in hyp.timings_ms.items() if k in row})
+        if hyp.prior_result is not None:
+            row["prior_latency_s"] = f"{hyp.prior_result.latency_s:.3f}"
+        if truth is not None:
+            row["error_km"] = f"{errors_km([(hyp.lat, hyp.lon)], [truth])[0]:.4f}"
+    # the estimates bag needs the hypothesis, not its candidate list
+    slim = None if hyp is None else dataclasses.replace(hyp, candidates=[])
+    return row, (frame.stamp_ns, slim, truth)
+
+
+def _write_csv(path: Path, rows: list[dict]) -> None:
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    with tmp.open("w", newline="", encoding="utf-8") as fh:
+        w = csv.DictWriter(fh, fieldnames=FRAME_FIELDS, extrasaction="ignore")
+        w.writeheader()
+        w.writerows(rows)
+    os.replace(tmp, path)
+
+
+def _write_estimates(path: Path, items: list[tuple]) -> Path:
+    """The results bag. Estimates are built exactly as the node publishes them
+    (:func:`msg_adapters.navsat.navsat_fix`: flagged fallbacks are ``STATUS_NO_FIX``)."""
+    from msg_adapters.navsat import navsat_fix
+
+    from vlm_vpr_ros.bags.messages import NAVSATFIX, navsatfix_msg
+    from vlm_vpr_ros.bags.writer import Rosbag2McapWriter
+
+    with Rosbag2McapWriter(path, overwrite=True) as bag:
+        for topic in (EST_TOPIC, PRIOR_TOPIC, GT_TOPIC):
+            bag.add_topic(topic, NAVSATFIX)
+        for t, hyp, truth in items:
+            if hyp is not None:
+                bag.write(EST_TOPIC, navsat_fix(hyp, t, FRAME_ID), t)
+                if hyp.prior is not None:
+                    bag.write(PRIOR_TOPIC, navsatfix_msg(hyp.prior.lat, hyp.prior.lon, t,
+                                                         FRAME_ID), t)
+            if truth is not None:
+                bag.write(GT_TOPIC, navsatfix_msg(truth[0], truth[1], t, "gps"), t)
+    return path
+
+
+def _plots(out: Path, rows: list[dict], summary: dict, name: Path) -> dict:
+    from vlm_vpr_ros.plots import plot_error_cdf, plot_world_map
+
+    gt = [(float(r["gt_lat"]), float(r["gt_lon"])) for r in rows]
+    est = [None if r["lat"] == "" else (float(r["lat"]), float(r["lon"])) for r in rows]
+    prior = [None if r["prior_lat"] == "" else (float(r["prior_lat"]), float(r["prior_lon"]))
+             for r in rows]
+    errs = [None if r["error_km"] == "" else float(r["error_km"]) for r in rows]
+    acc = summary["accuracy"]
+    title = (f"{name.name}: {summary['n']} frames, "
+             + ", ".join(f"{k} {v:.0f}%" for k, v in acc.items()))
+    world = plot_world_map(out / "world_map.png", gt, est, prior, title=title)
+    cdf = plot_error_cdf(out / "error_cdf.png", {"estimate": errs}, title=name.name)
+    return {"world_map_png": str(world), "error_cdf_png": str(cdf)}
+

@@ -1,0 +1,84 @@
+"""``vlm-vpr bag make``: geotagged images → a rosbag2 MCAP with camera frames and GPS truth."""
+
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+
+from vlm_vpr_ros.bags.messages import COMPRESSED, IMAGE, NAVSATFIX
+from vlm_vpr_ros.bags.messages import compressed_msg, image_msg, navsatfix_msg
+from vlm_vpr_ros.bags.msgdefs import qos_profile
+from vlm_vpr_ros.bags.writer import Rosbag2McapWriter, now_ns, write_sidecar
+from vlm_vpr_ros.errors import BagError, ConfigError, ImageDecodeError
+
+log = logging.getLogger(__name__)
+
+_PASS_THROUGH = {".jpg": "jpeg", ".jpeg": "jpeg", ".png": "png"}
+
+
+def image_topic_name(prefix: str, compressed: bool) -> str:
+    """image_transport naming: ``PREFIX/image_raw`` or ``PREFIX/image_raw/compressed``."""
+    base = "/" + prefix.strip("/") + "/image_raw" if prefix.strip("/") else "/image_raw"
+    return base + "/compressed" if compressed else base
+
+
+def make_bag(images_dir: str | os.PathLike[str], coords_csv: str | os.PathLike[str],
+             out: str | os.PathLike[str], rate_hz: float = 1.0, compressed: bool = False,
+             topic_prefix: str = "/camera", gt_topic: str = "/gps/fix",
+             frame_id: str = "camera", start_time_ns: int | None = None,
+             compression: str = "none", overwrite: bool = False,
+             progress: bool = True) -> dict:
+    """Write one camera frame per CSV row (``file, lat, lon``) at ``rate_hz``, each with a
+    ``NavSatFix`` ground truth of the same stamp. With ``compressed`` JPEG/PNG files are stored
+    as they are (no re-encoding). Returns paths, topics and counts; ``frames.csv`` beside the
+    bag maps stamps back to file names (so recorded priors keyed by file can be used)."""
+    from vlm_vpr_ros.imageio import decode_image_bytes, encode_jpeg
+    from vlm_vpr_ros.map_build import read_coords_csv
+
+    if not (rate_hz > 0 and rate_hz < 1e6):
+        raise ConfigError(f"--rate must be a positive frequency in Hz, got {rate_hz}")
+    images_dir = Path(images_dir)
+    rows = read_coords_csv(coords_csv)
+    period_ns = int(round(1e9 / rate_hz))
+    t0 = int(start_time_ns if start_time_ns is not None else now_ns())
+    img_topic = image_topic_name(topic_prefix, compressed)
+    sidecar, skipped = [], []
+    qos_img = [qos_profile(depth=10)]
+    with Rosbag2McapWriter(out, compression=compression, overwrite=overwrite) as bag:
+        bag.add_topic(img_topic, COMPRESSED if compressed else IMAGE, qos_img)
+        bag.add_topic(gt_topic, NAVSATFIX, [qos_profile(depth=10)])
+        it = rows
+        if progress:
+            from tqdm import tqdm
+
+            it = tqdm(rows, desc="bag make", unit="frame", disable=None, leave=False)
+        for f, lat, lon in it:
+            path = images_dir / f
+            try:
+                data = path.read_bytes()
+                rgb = decode_image_bytes(data, what=str(path))
+            except (OSError, ImageDecodeError) as exc:
+                log.warning("skipping %s: %s", path, exc)
+                skipped.append(f)
+                continue
+            t = t0 + len(sidecar) * period_ns
+            if compressed:
+                fmt = _PASS_THROUGH.get(path.suffix.lower())
+                msg = compressed_msg(data if fmt else encode_jpeg(rgb), fmt or "jpeg", t,
+                                     frame_id)
+            else:
+                msg = image_msg(rgb, t, frame_id)
+            bag.write(gt_topic, navsatfix_msg(lat, lon, t), t)
+            bag.write(img_topic, msg, t)
+            sidecar.append({"index": len(sidecar), "stamp_ns": t, "file": f, "lat": lat,
+                            "lon": lon})
+        if not sidecar:
+            raise BagError(f"no readable image among the {len(rows)} rows of {coords_csv}")
+    write_sidecar(Path(out) / "frames.csv", sidecar)
+    info = {"bag": str(out), "image_topic": img_topic, "gt_topic": gt_topic,
+            "frames": len(sidecar), "skipped": skipped,
+            "duration_s": (len(sidecar) - 1) * period_ns / 1e9}
+    log.info("bag %s: %d frames on %s + %s (%d skipped)", out, len(sidecar), img_topic,
+             gt_topic, len(skipped))
+    return info

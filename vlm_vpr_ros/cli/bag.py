@@ -1,0 +1,243 @@
+"""Bag sub-commands: ``bag make``/``bag info``, ``replay``, ``evaluate-bag`` and ``ablate``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+
+from vlm_vpr_ros.cli.common import (add_descriptor_option_args, add_localizer_args,
+                                    add_prior_args, descriptor_options, localizer_config,
+                                    make_prior_provider)
+
+log = logging.getLogger(__name__)
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("bag", help="make or inspect rosbag2 MCAP bags")
+    bsub = p.add_subparsers(dest="bag_command", metavar="ACTION")
+    bsub.required = True
+    m = bsub.add_parser("make", help="geotagged images -> rosbag2 MCAP (camera + NavSatFix)",
+                        description="Writes one camera frame per CSV row at --rate, each with a "
+                                    "sensor_msgs/NavSatFix ground truth of the same stamp, as a "
+                                    "rosbag2 MCAP folder (metadata.yaml, frames.csv beside).")
+    m.add_argument("--images", required=True, metavar="DIR")
+    m.add_argument("--coords", required=True, metavar="CSV", help="columns file, lat, lon")
+    m.add_argument("--out", required=True, metavar="BAG", help="bag folder to create")
+    m.add_argument("--rate", type=float, default=1.0, metavar="HZ", help="frames per second")
+    m.add_argument("--compressed", action="store_true",
+                   help="sensor_msgs/CompressedImage (JPEG/PNG stored as is) instead of raw "
+                        "rgb8 sensor_msgs/Image")
+    m.add_argument("--topic-prefix", default="/camera", metavar="NS",
+                   help="image topic is NS/image_raw[/compressed] (default /camera)")
+    m.add_argument("--gt-topic", default="/gps/fix", metavar="TOPIC")
+    m.add_argument("--frame-id", default="camera", metavar="ID")
+    m.add_argument("--start-time", type=float, default=None, metavar="SEC",
+                   help="stamp of the first frame, seconds since the epoch (default: now)")
+    m.add_argument("--mcap-compression", choices=["none", "zstd", "lz4"], default="none",
+                   help="MCAP chunk compression (default none)")
+    m.add_argument("--overwrite", action="store_true")
+    m.set_defaults(func=cmd_bag_make)
+    i = bsub.add_parser("info", help="topics, types and counts of a bag")
+    i.add_argument("bag", metavar="BAG")
+    i.add_argument("--json", action="store_true")
+    i.set_defaults(func=cmd_bag_info)
+
+    r = sub.add_parser("replay", help="publish a bag's messages on live ROS 2 topics",
+                       description="Publishes the recorded CDR messages through rclpy with "
+                                   "their recorded relative timing (divided by --rate).")
+    r.add_argument("bag", metavar="BAG", help="bag folder, .mcap or .db3")
+    r.add_argument("--rate", type=float, default=1.0, metavar="X", help="speed factor")
+    r.add_argument("--loop", action="store_true", help="start over at the end (Ctrl-C stops)")
+    r.add_argument("--topics", nargs="+", default=None, metavar="T", help="only these topics")
+    r.add_argument("--remap", action="append", default=[], metavar="FROM:=TO")
+    r.add_argument("--wait-subscribers", type=float, default=5.0, metavar="S",
+                   help="wait up to S seconds for a subscriber on every topic (default 5)")
+    r.add_argument("--domain-id", type=int, default=None, metavar="N",
+                   help="ROS domain (default: ROS_DOMAIN_ID)")
+    r.set_defaults(func=cmd_replay)
+
+    e = sub.add_parser("evaluate-bag", help="localize a bag's frames offline and score them",
+                       description="Reads images and NavSatFix ground truth from the bag, "
+                                   "localizes every frame, writes frames.csv, summary.json, "
+                                   "world_map.png, error_cdf.png and an estimates bag.")
+    e.add_argument("bag", metavar="BAG")
+    e.add_argument("--map", required=True, metavar="MAP")
+    _frame_args(e)
+    e.add_argument("--out", default=None, metavar="DIR",
+                   help="output folder (default: BAG_eval next to the bag)")
+    e.add_argument("--no-plots", action="store_true")
+    e.add_argument("--json", action="store_true", help="print only a JSON object on stdout")
+    add_descriptor_option_args(e)
+    add_prior_args(e)
+    add_localizer_args(e)
+    e.set_defaults(func=cmd_evaluate_bag)
+
+    a = sub.add_parser("ablate", help="the paper's ablation table and top-p plot",
+                       description="Rows {no prior, prior+re-rank, country submap, cluster "
+                                   "submap (each with/without re-rank)} x a top-p sweep, "
+                                   "from one map (re-partitioned in memory).")
+    a.add_argument("--map", required=True, metavar="MAP")
+    a.add_argument("--images", metavar="DIR", help="query images (with --queries)")
+    a.add_argument("--queries", metavar="CSV", help="query file, lat, lon")
+    a.add_argument("--bag", metavar="BAG", help="or: take the queries from a bag")
+    _frame_args(a)
+    a.add_argument("--top-p", default="1,5,10,25,50,100", metavar="LIST",
+                   help="comma-separated top-p sweep (default 1,5,10,25,50,100)")
+    a.add_argument("--clusters", type=int, default=None, metavar="K",
+                   help="K of the cluster submaps (default: the map's K, or 100)")
+    a.add_argument("--table-top-p", type=int, default=None, metavar="P",
+                   help="top-p of the main table (default: the largest swept)")
+    a.add_argument("--metric", default="25km", help="threshold of the sweep table")
+    a.add_argument("--out", default="ablation_out", metavar="DIR")
+    a.add_argument("--json", action="store_true", help="print only a JSON object on stdout")
+    add_descriptor_option_args(a)
+    add_prior_args(a)
+    a.set_defaults(func=cmd_ablate)
+
+
+def _frame_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--image-topic", default=None, metavar="T",
+                   help="Image/CompressedImage topic (default: the bag's only one)")
+    p.add_argument("--gt-topic", default=None, metavar="T",
+                   help="NavSatFix ground-truth topic (default: the bag's only one)")
+    p.add_argument("--max-gt-gap", type=float, default=0.5, metavar="S",
+                   help="pair a frame with a fix at most S seconds away (default 0.5)")
+    p.add_argument("--max-frames", type=int, default=None, metavar="N")
+
+
+def cmd_bag_make(args: argparse.Namespace) -> int:
+    from vlm_vpr_ros.bags.make import make_bag
+
+    start = None if args.start_time is None else int(round(args.start_time * 1e9))
+    info = make_bag(args.images, args.coords, args.out, rate_hz=args.rate,
+                    compressed=args.compressed, topic_prefix=args.topic_prefix,
+                    gt_topic=args.gt_topic, frame_id=args.frame_id, start_time_ns=start,
+                    compression=args.mcap_compression, overwrite=args.overwrite)
+    print(f"bag {info['bag']}: {info['frames']} frames on {info['image_topic']} + "
+          f"{info['gt_topic']} over {info['duration_s']:.1f} s"
+          + (f" ({len(info['skipped'])} unreadable images skipped)" if info["skipped"] else ""))
+    return 0
+
+
+def cmd_bag_info(args: argparse.Namespace) -> int:
+    from vlm_vpr_ros.bags.reader import open_bag
+
+    bag = open_bag(args.bag)
+    topics = {t.name: {"type": t.type, "count": t.count} for t in bag.topics.values()}
+    if args.json:
+        json.dump({"path": str(bag.path), "storage": bag.storage, "topics": topics,
+                   "complete": bag.complete, "problems": bag.problems}, sys.stdout)
+        sys.stdout.write("\n")
+        return 0
+    print(f"{bag.path} ({bag.storage}, {len(bag.files)} file(s))")
+    for name, t in sorted(topics.items()):
+        print(f"  {name:<40} {t['type']:<40} {t['count'] if t['count'] is not None else '?':>8}")
+    for p in bag.problems:
+        print(f"  problem: {p}")
+    return 0
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from vlm_vpr_ros.bags.reader import open_bag
+    from vlm_vpr_ros.bags.replay import ReplayConfig, parse_remaps, replay_bag
+
+    bag = open_bag(args.bag)
+    cfg = ReplayConfig(rate=args.rate, loop=args.loop, topics=args.topics,
+                       remap=parse_remaps(args.remap), wait_subscribers_s=args.wait_subscribers,
+                       domain_id=args.domain_id)
+    bar = tqdm(desc="replay", unit="msg", disable=None, leave=False)
+
+    def progress(done: int, total: int, t: float) -> None:
+        if bar.total != total:
+            bar.reset(total=total)
+        bar.n = done
+        bar.set_postfix_str(f"bag t={t:.1f}s", refresh=False)
+        bar.refresh() if done == total else bar.update(0)
+
+    try:
+        stats = replay_bag(bag, cfg, progress)
+    finally:
+        bar.close()
+    print(f"replayed {stats['published']} messages on {len(stats['topics'])} topic(s) in "
+          f"{stats.get('wall_s', 0):.1f} s ({stats['loops']} pass(es))")
+    return 0
+
+
+def cmd_evaluate_bag(args: argparse.Namespace) -> int:
+    from vlm_vpr_ros.bags.evaluate import BagEvalConfig, evaluate_bag
+    from vlm_vpr_ros.bags.reader import open_bag
+    from vlm_vpr_ros.evaluation import format_table
+    from vlm_vpr_ros.pipeline import LocalizationPipeline
+
+    from vlm_vpr_ros.bags.messages import IMAGE_TYPES, NAVSATFIX
+
+    bag = open_bag(args.bag)
+    bag.find_topic(IMAGE_TYPES, args.image_topic, "camera images")  # fail before loading
+    bag.find_topic((NAVSATFIX,), args.gt_topic, "ground truth")
+    out = Path(args.out) if args.out else Path(str(Path(args.bag)).rstrip("/") + "_eval")
+    pipe = LocalizationPipeline.open(args.map, localizer=localizer_config(args),
+                                     descriptor_config=descriptor_options(args))
+    cfg = BagEvalConfig(image_topic=args.image_topic, gt_topic=args.gt_topic,
+                        max_gt_gap_s=args.max_gt_gap, max_frames=args.max_frames,
+                        prior_timeout_s=args.prior_timeout)
+    provider = make_prior_provider(args)
+    try:
+        res = evaluate_bag(bag, pipe, provider, out, cfg, plots=not args.no_plots)
+    finally:
+        provider.close()
+    if args.json:
+        json.dump(res, sys.stdout)
+        sys.stdout.write("\n")
+        return 0
+    d = res["details"]
+    print(format_table({"estimate": res}, title=f"evaluate-bag {bag.path}: {d['frames']} "
+                       f"frames, {d['frames_scored']} with ground truth"))
+    for key, path in d["outputs"].items():
+        print(f"{key:>14}: {path}")
+    for w in d["warnings"]:
+        print(f"warning: {w}")
+    return 0
+
+
+def cmd_ablate(args: argparse.Namespace) -> int:
+    from vlm_vpr_ros.ablation import format_ablation, run_ablation
+    from vlm_vpr_ros.bags.ablate_inputs import ablation_inputs
+    from vlm_vpr_ros.config import choose
+    from vlm_vpr_ros.map_io import atomic_write_json
+    from vlm_vpr_ros.pipeline import LocalizationPipeline
+    from vlm_vpr_ros.plots import plot_topp_ablation
+
+    try:
+        top_ps = [int(x) for x in args.top_p.split(",") if x.strip()]
+    except ValueError:
+        from vlm_vpr_ros.errors import ConfigError
+
+        raise ConfigError(f"--top-p must be comma-separated integers, got {args.top_p!r}") \
+            from None
+    choose(args.metric, {f"{t:g}km": 1 for t in (1, 25, 200, 750, 2500)}, "metric")
+    pipe = LocalizationPipeline.open(args.map, descriptor_config=descriptor_options(args))
+    provider = make_prior_provider(args)
+    try:
+        desc, truth, priors = ablation_inputs(args, pipe, provider)
+    finally:
+        provider.close()
+    res = run_ablation(pipe.map, desc, truth, priors, top_ps, clusters=args.clusters,
+                       progress=lambda s: log.debug("ablation: %s", s))
+    out = Path(args.out)
+    plot = plot_topp_ablation(out / "ablation_top_p.png", res.top_ps,
+                              {k: [s["accuracy"] for s in v] for k, v in res.rows.items()},
+                              title=f"top-p ablation ({len(desc)} queries)")
+    data = {**res.as_dict(), "plot": str(plot)}
+    atomic_write_json(out / "ablation.json", data)
+    if args.json:
+        json.dump(data, sys.stdout)
+        sys.stdout.write("\n")
+        return 0
+    print(format_ablation(res, args.table_top_p, args.metric))
+    print(f"\nplot: {plot}\njson: {out / 'ablation.json'}")
+    return 0

@@ -1,0 +1,212 @@
+"""Checkpoints of the deep VPR models: where they are looked for, loading with a clear error
+when they are missing or do not fit, and fetching them on a connected machine.
+
+Search order: an explicit ``weights`` path, else ``<torch hub dir>/checkpoints/<release>``, i.e.
+``$TORCH_HOME/hub/checkpoints`` (``~/.cache/torch/hub/checkpoints`` by default) — the file the
+official ``torch.hub.load(...)`` call caches, so a checkpoint fetched either way is found.
+Loading is ``torch.load(weights_only=True)`` + ``load_state_dict(strict=True)``; there is no
+fallback to random weights.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib
+import logging
+import math
+import os
+import pickle
+import zipfile
+import zlib
+from pathlib import Path
+from typing import Any, Mapping
+
+import torch
+from torch import nn
+
+from vlm_vpr_ros.descriptors.deep.specs import ModelSpec
+from vlm_vpr_ros.errors import DescriptorError
+
+log = logging.getLogger(__name__)
+
+#: checkpoint containers that wrap the state_dict (PyTorch Lightning ``.ckpt``)
+_WRAPPER_KEYS = ("state_dict",)
+_MAX_LISTED = 8
+
+
+def build_model(spec: ModelSpec) -> nn.Module:
+    """The torch module of ``spec`` with its default (untrained) initialisation."""
+    module_name, cls_name = spec.builder.split(":")
+    cls = getattr(importlib.import_module(module_name), cls_name)
+    return cls(**spec.builder_kwargs)
+
+
+def hub_checkpoint_dir() -> Path:
+    """``<torch.hub.get_dir()>/checkpoints`` (honours ``TORCH_HOME``)."""
+    return Path(torch.hub.get_dir()) / "checkpoints"
+
+
+def default_weights_path(spec: ModelSpec) -> Path:
+    return hub_checkpoint_dir() / spec.release
+
+
+def how_to_get(spec: ModelSpec) -> str:
+    return (f"get it with 'vlm-vpr weights fetch {spec.name}' on a connected machine, or "
+            f"download {spec.human_url} and pass its path as weights=PATH (--weights PATH)")
+
+
+def resolve_weights(spec: ModelSpec, weights: str | os.PathLike[str] | None) -> Path:
+    """The checkpoint file to load; DescriptorError naming what was expected and where."""
+    if weights:
+        path = Path(weights).expanduser()
+        if not path.is_file():
+            raise DescriptorError(f"{spec.name}: checkpoint {path} does not exist "
+                                  f"(expected the official file {spec.release}); "
+                                  + how_to_get(spec))
+        return path
+    path = default_weights_path(spec)
+    if not path.is_file():
+        raise DescriptorError(f"{spec.name}: no checkpoint given and {spec.release} is not in "
+                              f"the torch hub cache ({path.parent}, set by TORCH_HOME); "
+                              + how_to_get(spec))
+    return path
+
+
+def read_state_dict(path: str | os.PathLike[str], what: str = "checkpoint"
+                    ) -> dict[str, torch.Tensor]:
+    """Read a plain (or Lightning-wrapped) state_dict safely (``weights_only=True``)."""
+    path = Path(path)
+    try:
+        obj = torch.load(path, map_location="cpu", weights_only=True)
+    except (OSError, RuntimeError, ValueError, EOFError, KeyError, AttributeError,
+            pickle.UnpicklingError, zipfile.BadZipFile) as exc:
+        raise DescriptorError(f"{what} {path} is not a loadable torch checkpoint "
+                              f"(read with weights_only=True): {type(exc).__name__}: {exc}"
+                              ) from exc
+    for key in _WRAPPER_KEYS:
+        if isinstance(obj, Mapping) and isinstance(obj.get(key), Mapping):
+            obj = obj[key]
+    if not isinstance(obj, Mapping) or not all(
+            isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in obj.items()):
+        raise DescriptorError(f"{what} {path} does not hold a state_dict of named tensors "
+                              f"(got {type(obj).__name__})")
+    return dict(obj)
+
+
+def _listed(items: list[str]) -> str:
+    more = f" ... (+{len(items) - _MAX_LISTED} more)" if len(items) > _MAX_LISTED else ""
+    return ", ".join(items[:_MAX_LISTED]) + more
+
+
+def check_state_dict(model: nn.Module, state: Mapping[str, torch.Tensor], source: str) -> None:
+    """Raise DescriptorError listing missing, unexpected and wrongly shaped keys."""
+    expected = {k: tuple(v.shape) for k, v in model.state_dict().items()}
+    missing = [k for k in expected if k not in state]
+    unexpected = [k for k in state if k not in expected]
+    shapes = [f"{k} {tuple(state[k].shape)} != {expected[k]}" for k in expected
+              if k in state and tuple(state[k].shape) != expected[k]]
+    if missing or unexpected or shapes:
+        parts = []
+        if shapes:
+            parts.append(f"wrong shape: {_listed(shapes)}")
+        if missing:
+            parts.append(f"missing: {_listed(missing)}")
+        if unexpected:
+            parts.append(f"unexpected: {_listed(unexpected)}")
+        raise DescriptorError(f"{source} does not fit this model ("
+                              + "; ".join(parts) + ")")
+
+
+def load_weights(model: nn.Module, path: str | os.PathLike[str], name: str = "") -> None:
+    """Load a checkpoint file into ``model`` with ``strict=True`` after a readable check."""
+    what = f"{name} checkpoint" if name else "checkpoint"
+    state = read_state_dict(path, what)
+    check_state_dict(model, state, f"{what} {path}")
+    model.load_state_dict(state, strict=True)
+    log.info("loaded %s from %s (%d tensors)", what, path, len(state))
+
+
+def file_sha256(path: str | os.PathLike[str]) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def save_state_dict(state: Mapping[str, torch.Tensor], path: str | os.PathLike[str]) -> Path:
+    """Write a plain state_dict atomically (temporary file + ``os.replace``)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    try:
+        torch.save(dict(state), tmp)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
+
+
+def recipe_state_dict(model: nn.Module) -> dict[str, torch.Tensor]:
+    """Deterministic weights from key names (the recipe of ``shared/vpr_conformance``).
+
+    For tests and benchmarks only: these are NOT trained weights.
+    """
+    out: dict[str, torch.Tensor] = {}
+    for key, t in model.state_dict().items():
+        g = torch.Generator().manual_seed(zlib.crc32(key.encode("utf-8")))
+        shape = tuple(t.shape)
+        if key.endswith("num_batches_tracked"):
+            w = torch.zeros_like(t)
+        elif key.endswith("running_var"):
+            w = torch.rand(shape, generator=g) + 0.5
+        elif key.endswith("running_mean"):
+            w = torch.randn(shape, generator=g) * 0.1
+        elif t.dim() >= 2:
+            w = torch.randn(shape, generator=g) * (1.0 / math.sqrt(math.prod(shape[1:])))
+        elif key.endswith(".weight"):
+            w = 1 + 0.1 * torch.randn(shape, generator=g)
+        else:
+            w = torch.randn(shape, generator=g) * 0.1
+        out[key] = w
+    return out
+
+
+def fetch(spec: ModelSpec, dest: str | os.PathLike[str] | None = None, url: str | None = None,
+          force: bool = False, progress: bool = True) -> Path:
+    """Download the official checkpoint, check that it fits the model, store it atomically
+    where the loader looks (or in ``dest``). Returns the file's path."""
+    target = (Path(dest).expanduser() / spec.release) if dest else default_weights_path(spec)
+    if target.is_file() and not force:
+        log.info("%s already present: %s", spec.name, target)
+        return target
+    urls = [url] if url else spec.download_urls
+    if not urls:
+        raise DescriptorError(f"{spec.name}: no download URL known; see {spec.official_repo}")
+    target.parent.mkdir(parents=True, exist_ok=True)
+    tmp = target.with_name(f".{target.name}.part{os.getpid()}")
+    errors: list[str] = []
+    try:
+        for u in urls:
+            log.info("downloading %s from %s", spec.name, u)
+            try:
+                torch.hub.download_url_to_file(u, str(tmp), progress=progress)
+            except (OSError, ValueError) as exc:  # URLError is an OSError
+                errors.append(f"{u}: {exc}")
+                continue
+            state = read_state_dict(tmp, f"downloaded {spec.name} file")
+            check_state_dict(build_model(spec), state, f"downloaded {spec.name} file from {u}")
+            os.replace(tmp, target)
+            log.info("stored %s (%s)", target, file_sha256(target)[:16])
+            return target
+    finally:
+        tmp.unlink(missing_ok=True)
+    raise DescriptorError(f"could not download {spec.name} ({'; '.join(errors)}); download "
+                          f"{spec.human_url} by hand and copy it to {target}")
+
+
+def describe_weights(spec: ModelSpec, weights: str | None = None) -> dict[str, Any]:
+    """Where a checkpoint is expected and whether it is there (for ``vlm-vpr weights list``)."""
+    path = Path(weights).expanduser() if weights else default_weights_path(spec)
+    return {"model": spec.name, "dim": spec.dim, "release": spec.release, "path": str(path),
+            "present": path.is_file(), "url": spec.human_url}

@@ -1,0 +1,278 @@
+"""Reading a (lat, lon) out of a VLM's free-text answer. Never raises on any text.
+
+Three modes, selectable everywhere a parser is configured:
+
+``strict``
+    The whole answer, or one of its fenced code blocks, must be a JSON object with ``latitude``
+    and ``longitude`` given as numbers or numeric strings.
+``robust`` (default)
+    ``strict`` first, then JSON objects embedded in prose, JSON-ish ``"latitude": "27.1° N"``
+    pairs of broken/truncated JSON, labelled numbers (``Latitude: 40.7``), hemisphere pairs
+    (``40.7° N, 74.0° W``), degree-minute-second forms and ``coordinates: 40.7, -74.0``.
+``paper``
+    The regex of the paper (``[-+]?\\d*\\.\\d+|\\d+``): the first two numbers are lat, lon.
+
+All modes check ranges; a refusal or an answer without coordinates gives a typed result
+(``reason`` = ``"empty"``, ``"refusal"``, ``"no_coordinates"`` or ``"out_of_range"``).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from dataclasses import dataclass, field
+from typing import Any, Iterator
+
+from vlm_vpr_ros.config import choose
+
+PARSER_MODES = ("strict", "robust", "paper")
+MAX_TEXT_CHARS = 100_000  # longer answers are truncated before parsing (bounded work)
+_MAX_JSON_STARTS = 64  # '{' positions tried for embedded JSON
+_LABEL_WINDOW = 200  # characters after a labelled latitude searched for its longitude
+_REFUSAL_WINDOW = 400  # a refusal is recognised near the start of an answer
+
+_LAT_KEYS = ("latitude", "lat")
+_LON_KEYS = ("longitude", "lon", "lng", "long")
+_INFO_KEYS = ("continent", "country", "region", "city", "neighborhood", "place",
+              "exact_location_name")
+
+_FENCE = re.compile(r"```[ \t]*([A-Za-z0-9_-]*)[ \t]*\r?\n?(.*?)```", re.S)
+_PAPER_NUM = re.compile(r"[-+]?\d*\.\d+|\d+")
+_NUM = r"[-+−]?\d{1,3}(?:[.,]\d+)?"
+_HEMI = r"(?:[NSEW]|north|south|east|west)\b"
+_DEG = r"\s*(?:°|º|˚|deg(?:rees?)?\b|degs?\b)?"
+# one coordinate value: DMS / DM, or decimal with optional degree sign and hemisphere
+_DMS = (r"(?P<d>\d{1,3})\s*(?:°|º|˚|d|deg)\s*(?P<m>\d{1,2}(?:\.\d+)?)\s*(?:'|′|’|m\b|min\b)"
+        r"(?:\s*(?P<s>\d{1,2}(?:\.\d+)?)\s*(?:\"|″|''|”|s\b|sec\b))?")
+_VALUE = re.compile(
+    rf"^\s*(?:(?P<pre>[NSEW])\s*)?(?:{_DMS}|(?P<dec>{_NUM}){_DEG})\s*(?P<hemi>{_HEMI})?",
+    re.I)
+# what may sit between a label and its number: "Latitude:** ", "latitude is approximately "
+_LINK = (r"(?:[\s\"'*_]*(?:[:=~]|\bis\b|\bwas\b|\bof\b|\bto be\b|\bwould be\b|\bat\b|"
+         r"\bapprox(?:imately|\.)?|\babout\b|\baround\b|\broughly\b)){0,3}[\s\"'*_]*")
+_LABELLED = {
+    "lat": re.compile(r"\b(?:latitude|lat)\b" + _LINK, re.I),
+    "lon": re.compile(r"\b(?:longitude|long|lon|lng)\b" + _LINK, re.I),
+}
+_PAIR_LABEL = re.compile(
+    r"\b(?:coordinates?|lat(?:itude)?\s*(?:,|/|and|&)\s*lon(?:gitude|g)?|gps|location)\b"
+    rf"[^0-9+\-−\n]{{0,40}}?\(?\s*({_NUM})\s*°?\s*[,;/]\s*({_NUM})\s*°?"
+    r"(?!\d|[.,]\d|\s*[NSEW]\b)",
+    re.I)
+_HEMI_PAIR = re.compile(
+    rf"(?P<a>(?:{_DMS}|{_NUM}{_DEG}))\s*(?P<ha>[NS])\b[\s,;/]*"
+    rf"(?P<b>(?:{_DMS.replace('?P<', '?P<b_')}|{_NUM}{_DEG}))\s*(?P<hb>[EW])\b", re.I)
+_REFUSAL = re.compile(
+    r"\b(?:unable to|not able to|can(?:no|')t|can’t|cannot|sorry|apologi[sz]e|"
+    r"won't be able|do(?:n't| not) have (?:enough|sufficient)|not possible to|impossible to|"
+    r"insufficient information|i am not able)\b", re.I)
+
+
+@dataclass(frozen=True)
+class ParsedAnswer:
+    """Outcome of parsing one answer: a position, or ``None`` and a ``reason``."""
+
+    lat: float | None
+    lon: float | None
+    reason: str = ""  # "" when ok
+    method: str = ""  # how it was found: json, fenced_json, embedded_json, labelled, ...
+    info: dict[str, str] = field(default_factory=dict)  # country, city, ... when given
+
+    @property
+    def ok(self) -> bool:
+        return self.lat is not None and self.lon is not None
+
+
+def in_range(lat: float, lon: float) -> bool:
+    return (math.isfinite(lat) and math.isfinite(lon)
+            and -90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0)
+
+
+def parse_answer(text: Any, mode: str = "robust") -> ParsedAnswer:
+    """Parse a VLM answer with ``mode`` (strict, robust, paper). Never raises on ``text``;
+    an unknown ``mode`` is a ConfigError listing the choices."""
+    func = choose(mode, _MODES, "answer parser")
+    if not isinstance(text, str):
+        text = "" if text is None else str(text)
+    text = text[:MAX_TEXT_CHARS]
+    if not text.strip():
+        return ParsedAnswer(None, None, "empty")
+    found_out_of_range = False
+    for lat, lon, method, info in func(text):
+        if in_range(lat, lon):
+            return ParsedAnswer(float(lat), float(lon), "", method, info)
+        found_out_of_range = True
+    if found_out_of_range:
+        return ParsedAnswer(None, None, "out_of_range")
+    refused = _REFUSAL.search(text[:_REFUSAL_WINDOW]) is not None
+    return ParsedAnswer(None, None, "refusal" if refused else "no_coordinates")
+
+
+# --- JSON ------------------------------------------------------------------------------------
+def _loads(text: str) -> Any:
+    try:
+        return json.loads(text)
+    except (ValueError, RecursionError):
+        return None
+
+
+def _scalar(value: Any, axis: str) -> float | None:
+    """A JSON value as degrees: numbers, numeric strings, and (not strict) '27.1° N' forms."""
+    if isinstance(value, bool):
+        return None
+    if isinstance(value, (int, float)):
+        return float(value)
+    if isinstance(value, str):
+        try:
+            return float(value.strip())
+        except ValueError:
+            return None
+    return None
+
+
+def _lenient_scalar(value: Any, axis: str) -> float | None:
+    v = _scalar(value, axis)
+    if v is None and isinstance(value, str):
+        v = _value(value, axis)
+    return v
+
+
+def _find_keys(obj: Any, depth: int = 0) -> tuple[Any, Any, dict[str, str]] | None:
+    """The first (lat, lon) value pair in a JSON object, searching nested objects."""
+    if depth > 6 or not isinstance(obj, dict):
+        return None
+    low = {str(k).strip().lower(): v for k, v in obj.items()}
+    info = {k: str(low[k])[:200] for k in _INFO_KEYS if isinstance(low.get(k), (str, int))}
+    lat = next((low[k] for k in _LAT_KEYS if k in low), None)
+    lon = next((low[k] for k in _LON_KEYS if k in low), None)
+    if lat is not None and lon is not None:
+        return lat, lon, info
+    for key in ("coordinates", "coords", "location", "position", "gps"):
+        v = low.get(key)
+        if isinstance(v, (list, tuple)) and len(v) == 2:
+            return v[0], v[1], info
+    for v in low.values():
+        hit = _find_keys(v, depth + 1)
+        if hit is not None:
+            return hit
+    return None
+
+
+def _from_json(obj: Any, method: str, lenient: bool) -> Iterator[tuple[float, float, str, dict]]:
+    hit = _find_keys(obj) if lenient else _top_keys(obj)
+    if hit is None:
+        return
+    lat_v, lon_v, info = hit
+    conv = _lenient_scalar if lenient else _scalar
+    lat, lon = conv(lat_v, "lat"), conv(lon_v, "lon")
+    if lat is not None and lon is not None:
+        yield lat, lon, method, info
+
+
+def _top_keys(obj: Any) -> tuple[Any, Any, dict[str, str]] | None:
+    if not isinstance(obj, dict) or "latitude" not in obj or "longitude" not in obj:
+        return None
+    info = {k: str(obj[k])[:200] for k in _INFO_KEYS if isinstance(obj.get(k), (str, int))}
+    return obj["latitude"], obj["longitude"], info
+
+
+def _json_candidates(text: str) -> Iterator[tuple[Any, str]]:
+    yield _loads(text.strip()), "json"
+    for m in _FENCE.finditer(text):
+        yield _loads(m.group(2).strip()), "fenced_json"
+
+
+def _strict(text: str) -> Iterator[tuple[float, float, str, dict]]:
+    for obj, method in _json_candidates(text):
+        yield from _from_json(obj, method, lenient=False)
+
+
+# --- free text -------------------------------------------------------------------------------
+def _num(s: str) -> float:
+    return float(s.replace("−", "-").replace(",", "."))
+
+
+def _dms(d: str, m: str | None, s: str | None) -> float:
+    return float(d) + float(m or 0) / 60.0 + float(s or 0) / 3600.0
+
+
+def _signed(value: float, hemi: str | None, axis: str) -> float | None:
+    if not hemi:
+        return value
+    h = hemi[0].upper()
+    if (axis == "lat" and h not in "NS") or (axis == "lon" and h not in "EW"):
+        return None
+    return -abs(value) if h in "SW" else abs(value)
+
+
+def _value(s: str, axis: str) -> float | None:
+    """One coordinate at the start of ``s`` (decimal or DMS, optional hemisphere)."""
+    m = _VALUE.match(s[:80])
+    if m is None:
+        return None
+    try:
+        v = _dms(m["d"], m["m"], m["s"]) if m["d"] else _num(m["dec"])
+    except (TypeError, ValueError):
+        return None
+    return _signed(v, m["hemi"] or m["pre"], axis)
+
+
+def _embedded_json(text: str) -> Iterator[tuple[float, float, str, dict]]:
+    decoder = json.JSONDecoder()
+    for n, m in enumerate(re.finditer(r"\{", text)):
+        if n >= _MAX_JSON_STARTS:
+            break
+        try:
+            obj, _ = decoder.raw_decode(text, m.start())
+        except (ValueError, RecursionError):
+            continue
+        yield from _from_json(obj, "embedded_json", lenient=True)
+
+
+def _labelled(text: str) -> Iterator[tuple[float, float, str, dict]]:
+    """``latitude: 40.7 ... longitude: -74.0`` (also JSON-ish keys of broken JSON): a labelled
+    longitude must follow its latitude within a few lines."""
+    for m in _LABELLED["lat"].finditer(text):
+        lat = _value(text[m.end():], "lat")
+        if lat is None:
+            continue
+        window = text[m.end():m.end() + _LABEL_WINDOW]
+        for k in _LABELLED["lon"].finditer(window):
+            lon = _value(window[k.end():], "lon")
+            if lon is not None:
+                yield lat, lon, "labelled", {}
+                break
+
+
+def _pairs(text: str) -> Iterator[tuple[float, float, str, dict]]:
+    for m in _HEMI_PAIR.finditer(text):
+        lat = _value(m["a"] + " " + m["ha"], "lat")
+        lon = _value(m["b"] + " " + m["hb"], "lon")
+        if lat is not None and lon is not None:
+            yield lat, lon, "hemisphere_pair", {}
+    for m in _PAIR_LABEL.finditer(text):
+        try:
+            yield _num(m[1]), _num(m[2]), "labelled_pair", {}
+        except ValueError:
+            continue
+
+
+def _robust(text: str) -> Iterator[tuple[float, float, str, dict]]:
+    for obj, method in _json_candidates(text):
+        yield from _from_json(obj, method, lenient=True)
+    yield from _embedded_json(text)
+    yield from _labelled(text)
+    yield from _pairs(text)
+
+
+def _paper(text: str) -> Iterator[tuple[float, float, str, dict]]:
+    nums = _PAPER_NUM.findall(text[:MAX_TEXT_CHARS])
+    if len(nums) >= 2:
+        try:
+            yield float(nums[0]), float(nums[1]), "paper_regex", {}
+        except ValueError:
+            return
+
+
+_MODES = {"strict": _strict, "robust": _robust, "paper": _paper}
