@@ -256,3 +256,10 @@ def test_config_errors(tmp_path):
     prov = create_prior_provider("openai", {"api_key_file": str(key)})
     assert SECRET not in repr(prov.client) and "key=set" in repr(prov.client)
     prov.close()
+
+
+def test_caller_side_timeout_is_labelled_with_the_model(server):
+    server.set(behaviour="slow", delay_s=3.0)
+    with _provider(server) as prov:
+        res = prov.get(_query(), timeout_s=0.2)  # the caller gives up; the call is aborted
+    assert res.reason == "timeout" and res.source == "openai:fixture-vlm"

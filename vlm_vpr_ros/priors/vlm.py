@@ -127,7 +127,7 @@ class OpenAIPrior(PriorProvider):
             raise ConfigError("openai prior: max_image_side must be >= 32 (or null)")
         self.model = str(model)
         self.parser = parser
-        self.source = f"openai:{self.model}"
+        self.source = self.name = f"openai:{self.model}"  # name labels timeouts too
         self.client = ChatClient(base_url, _read_api_key(api_key_env, api_key_file),
                                  timeout_s=float(timeout_s), max_retries=int(max_retries),
                                  backoff_s=float(backoff_s),
@@ -237,7 +237,7 @@ def read_answers_csv(path: str | os.PathLike[str]) -> dict[str, str]:
     ignored; ``file`` is accepted for ``filename``)."""
     path = Path(path)
     try:
-        fh = path.open(newline="", encoding="utf-8")
+        fh = path.open(newline="", encoding="utf-8-sig")
     except OSError as exc:
         raise DataError(f"cannot read answers CSV {path}: {exc.strerror}") from None
     with fh:
@@ -263,7 +263,7 @@ class AnswersPrior(PriorProvider):
         self.parser = parser
         self.answers = read_answers_csv(path)
         self._by_base = {os.path.basename(k): v for k, v in self.answers.items()}
-        self.source = f"answers:{Path(path).stem}"
+        self.source = self.name = f"answers:{Path(path).stem}"
 
     def _compute(self, query: PriorQuery) -> PriorResult:
         if not query.key:
