@@ -173,3 +173,23 @@ def test_map_records_and_enforces_descriptor(tmp_path, demo_data, ckpt):
     (out / "manifest.json").write_text(json.dumps(manifest))
     with pytest.raises(MapError, match="preprocessing"):
         LocalizationPipeline.open(out, descriptor_config={"weights": str(ckpt)}, verify=False)
+
+
+@pytest.mark.parametrize("config, message", [
+    ({"weight": "x"}, r"unknown .* option\(s\) \['weight'\]; valid options"),
+    ({"device": "tpu"}, "choices: auto, cpu, cuda"),
+    ({"batch_size": 0}, "batch_size must be 1..1024"),
+    ({"fp16": "yes"}, "fp16 must be true or false"),
+    ({"weights": 5}, "weights must be a file path"),
+    ({"resize": [10, "a"]}, r"resize must be \[H, W\]"),
+])
+def test_config_errors(config, message):
+    from vlm_vpr_ros.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=message):
+        create_descriptor("cosplace", config)
+    with pytest.raises(ConfigError, match="fixed at"):
+        create_descriptor("boq", {"resize": [480, 640]})
+    if not torch.cuda.is_available():
+        with pytest.raises(DescriptorError, match="CUDA is not available"):
+            create_descriptor("mixvpr", {"device": "cuda"})

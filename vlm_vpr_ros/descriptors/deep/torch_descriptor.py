@@ -9,6 +9,7 @@ where the model has a fixed input size, ImageNet normalisation. Extraction runs 
 from __future__ import annotations
 
 import logging
+import os
 from dataclasses import asdict, dataclass
 from typing import Any, Iterator, Mapping, Sequence
 
@@ -36,7 +37,9 @@ class DeepConfig:
     weights: str | None = None
     #: "auto" (cuda when available), "cpu", "cuda" or "cuda:N"
     device: str = "auto"
-    batch_size: int = 8
+    #: images per forward pass; None = 1 on CPU (batching does not pay off there, see
+    #: docs/models.md), 8 on CUDA
+    batch_size: int | None = None
     #: float16 autocast on GPU (ignored with a warning on CPU)
     fp16: bool = False
     #: [H, W] resize before the network (CosPlace/EigenPlaces only; the others are fixed)
@@ -97,14 +100,19 @@ class DeepDescriptor(GlobalDescriptor):
         """``state_dict`` (tests/benchmarks only) replaces loading the checkpoint file."""
         cfg = from_mapping(DeepConfig, config, f"{spec.name} descriptor")
         resize = _check_resize(spec, cfg.resize)
-        if not isinstance(cfg.batch_size, int) or not 1 <= cfg.batch_size <= 1024:
+        if cfg.batch_size is not None and (not isinstance(cfg.batch_size, int)
+                                           or not 1 <= cfg.batch_size <= 1024):
             raise ConfigError(f"{spec.name}: batch_size must be 1..1024, got {cfg.batch_size!r}")
+        if cfg.weights is not None and not isinstance(cfg.weights, (str, os.PathLike)):
+            raise ConfigError(f"{spec.name}: weights must be a file path, got {cfg.weights!r}")
+        if not isinstance(cfg.fp16, bool):
+            raise ConfigError(f"{spec.name}: fp16 must be true or false, got {cfg.fp16!r}")
         super().__init__(asdict(cfg))
         self.spec = spec
         self.name = spec.name
         self.resize = resize
-        self.batch_size = cfg.batch_size
         self.device = resolve_device(str(cfg.device))
+        self.batch_size = cfg.batch_size or (8 if self.device.type == "cuda" else 1)
         self.fp16 = bool(cfg.fp16) and self.device.type == "cuda"
         if cfg.fp16 and not self.fp16:
             log.warning("%s: fp16 needs a CUDA device; running float32 on %s", spec.name,

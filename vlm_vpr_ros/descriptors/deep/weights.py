@@ -77,12 +77,19 @@ def read_state_dict(path: str | os.PathLike[str], what: str = "checkpoint"
     """Read a plain (or Lightning-wrapped) state_dict safely (``weights_only=True``)."""
     path = Path(path)
     try:
+        head = path.read_bytes()[:512] if path.stat().st_size < 1 << 20 else b""
+    except OSError as exc:
+        raise DescriptorError(f"cannot read {what} {path}: {exc}") from exc
+    if b"<html" in head.lower() or b"<!doctype" in head.lower():
+        raise DescriptorError(f"{what} {path} is not a loadable torch checkpoint: it is an "
+                              "HTML page (a download that returned a web page?)")
+    try:
         obj = torch.load(path, map_location="cpu", weights_only=True)
     except (OSError, RuntimeError, ValueError, EOFError, KeyError, AttributeError,
             pickle.UnpicklingError, zipfile.BadZipFile) as exc:
         raise DescriptorError(f"{what} {path} is not a loadable torch checkpoint "
-                              f"(read with weights_only=True): {type(exc).__name__}: {exc}"
-                              ) from exc
+                              f"(read with weights_only=True): {type(exc).__name__}: "
+                              f"{_short(exc)}") from exc
     for key in _WRAPPER_KEYS:
         if isinstance(obj, Mapping) and isinstance(obj.get(key), Mapping):
             obj = obj[key]
@@ -91,6 +98,16 @@ def read_state_dict(path: str | os.PathLike[str], what: str = "checkpoint"
         raise DescriptorError(f"{what} {path} does not hold a state_dict of named tensors "
                               f"(got {type(obj).__name__})")
     return dict(obj)
+
+
+def _short(exc: BaseException) -> str:
+    """The informative line of torch.load's (long) error text."""
+    text = str(exc)
+    marker = "WeightsUnpickler error:"
+    if marker in text:
+        text = text.split(marker, 1)[1]
+    lines = [ln.strip() for ln in text.strip().splitlines() if ln.strip()]
+    return (lines[0] if lines else type(exc).__name__)[:300]
 
 
 def _listed(items: list[str]) -> str:
@@ -194,8 +211,13 @@ def fetch(spec: ModelSpec, dest: str | os.PathLike[str] | None = None, url: str 
             except (OSError, ValueError) as exc:  # URLError is an OSError
                 errors.append(f"{u}: {exc}")
                 continue
-            state = read_state_dict(tmp, f"downloaded {spec.name} file")
-            check_state_dict(build_model(spec), state, f"downloaded {spec.name} file from {u}")
+            try:
+                state = read_state_dict(tmp, f"file downloaded from {u}")
+                check_state_dict(build_model(spec), state, f"file downloaded from {u}")
+            except DescriptorError as exc:
+                raise DescriptorError(f"{exc}. If the server sent a web page instead of the "
+                                      f"file, download {spec.human_url} in a browser and copy "
+                                      f"it to {target}") from exc
             os.replace(tmp, target)
             log.info("stored %s (%s)", target, file_sha256(target)[:16])
             return target
