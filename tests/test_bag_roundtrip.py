@@ -84,7 +84,7 @@ def test_three_readers_agree(made, demo_data):
         fixes = [(t, m) for topic, t, m in reader if topic == "/gps/fix"]
         frames = [(t, m) for topic, t, m in reader if topic == info["image_topic"]]
         assert [t for t, _ in fixes] == stamps and [t for t, _ in frames] == stamps
-        for (t, fix), (f, lat, lon) in zip(fixes, rows):
+        for (t, fix), (_file, lat, lon) in zip(fixes, rows):
             assert (fix.header.stamp.sec, fix.header.stamp.nanosec) == divmod(t, 10**9)
             assert fix.latitude == lat and fix.longitude == lon  # exact float64 round trip
             assert fix.status.status == 0 and math.isnan(fix.altitude)

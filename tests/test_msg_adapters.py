@@ -91,9 +91,11 @@ def test_packed_yuv422(enc):
     y, u, v = yuv[..., 0], yuv[:, ::2, 1], yuv[:, ::2, 2]
     packed = np.empty((rgb.shape[0], rgb.shape[1] // 2, 4), np.uint8)
     if enc in ("yuv422", "uyvy"):  # U Y0 V Y1
-        packed[..., 0], packed[..., 1], packed[..., 2], packed[..., 3] = u, y[:, ::2], v, y[:, 1::2]
+        planes = (u, y[:, ::2], v, y[:, 1::2])
     else:  # Y0 U Y1 V
-        packed[..., 0], packed[..., 1], packed[..., 2], packed[..., 3] = y[:, ::2], u, y[:, 1::2], v
+        planes = (y[:, ::2], u, y[:, 1::2], v)
+    for i, plane in enumerate(planes):
+        packed[..., i] = plane
     out = image_to_rgb(make_msg(enc, packed.reshape(rgb.shape[0], -1), pad=6))
     assert np.abs(out.astype(int) - rgb.astype(int)).max() <= 4
 

@@ -32,19 +32,19 @@ class SlowPrior(PriorProvider):
         self.delay_s, self.prior = delay_s, Prior(lat, lon, "slow")
         self.pool = cf.ThreadPoolExecutor(1)
         self.queries: list[PriorQuery] = []
-        self.cancelled = threading.Event()
+        self.closed = threading.Event()
 
     def request(self, query):
         self.queries.append(query)
-        fut = self.pool.submit(self._answer)
-        fut.add_done_callback(lambda f: f.cancelled() and self.cancelled.set())
-        return fut
+        return self.pool.submit(self._answer)
 
     def _answer(self):
-        time.sleep(self.delay_s)
+        if self.closed.wait(self.delay_s):  # close() ends the wait (no thread left sleeping)
+            return PriorResult.failure("slow", "cancelled")
         return PriorResult(self.prior, "slow", latency_s=self.delay_s)
 
     def close(self):
+        self.closed.set()
         self.pool.shutdown(wait=False, cancel_futures=True)
 
 
@@ -268,3 +268,22 @@ def test_runtime_config_rejects_bad_values():
         RuntimeConfig(mode="sometimes")
     with pytest.raises(ConfigError):
         RuntimeConfig(prior_timeout_s=0)
+
+
+def test_diagnostics_warn_when_the_camera_goes_silent(monkeypatch):
+    from vlm_vpr_ros import runtime_stats
+
+    monkeypatch.setattr(runtime_stats, "NO_FRAMES_WARN_S", 0.2)
+    stats = runtime_stats.RuntimeStats("none", "continuous")
+    assert stats.report()[0] == "OK"  # just started: waiting is fine
+    time.sleep(0.3)
+    assert stats.report()[:2] == ("WARN", "no images received")
+    stats.frame_received(False)
+    assert stats.report()[0] == "OK"
+    time.sleep(0.3)
+    level, message, values = stats.report()
+    assert level == "WARN" and message.startswith("no images for")
+    assert values["last_frame_age_s"] >= 0.3
+    trig = runtime_stats.RuntimeStats("none", "on_trigger")
+    time.sleep(0.3)
+    assert trig.report()[:2] == ("OK", "waiting for a relocalize request")

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import copy
 import logging
+import os
 import sys
 import time
 
@@ -20,7 +21,7 @@ from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
-from rclpy.qos import (QoSProfile, ReliabilityPolicy, qos_profile_sensor_data)
+from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import CompressedImage, Image, NavSatFix
 from std_srvs.srv import Trigger
 
@@ -28,7 +29,7 @@ from msg_adapters.diagnostics import diagnostic_array
 from msg_adapters.image import encoded_bytes, message_to_rgb, stamp_ns
 from msg_adapters.navsat import FixPolicy, navsat_fix
 from vlm_vpr_ros.errors import VlmVprError
-from vlm_vpr_ros.node_config import PARAMETERS, NodeConfig, from_params
+from vlm_vpr_ros.node_config import PARAMETERS, from_params
 from vlm_vpr_ros.pipeline import LocalizationPipeline
 from vlm_vpr_ros.priors import create_prior_provider
 from vlm_vpr_ros.runtime import (Frame, QueryOutcome, QueryRuntime, RuntimeConfig,
@@ -80,8 +81,8 @@ class VlmVprNode(Node):
         cfg = self.cfg = from_params({k: p.value for k, p in params.items()})
         t0 = time.monotonic()
         self.pipeline = LocalizationPipeline.open(
-            cfg.map_dir, descriptor=cfg.descriptor or None, localizer=cfg.localizer_config(),
-            descriptor_config=cfg.descriptor_options)
+            os.path.expanduser(cfg.map_dir), descriptor=cfg.descriptor or None,
+            localizer=cfg.localizer_config(), descriptor_config=cfg.descriptor_options)
         provider = create_prior_provider(cfg.prior_provider, cfg.prior)
         self.policy = FixPolicy(cfg.fallback_status, cfg.fallback_min_sigma_m, cfg.altitude_m,
                                 cfg.altitude_sigma_m)

@@ -46,10 +46,10 @@ class NodeConfig:
     min_period_s: float = _p(1.0, "least time between the starts of two queries")
     frame_id: str = _p("", "header.frame_id of the fix ('' = the image's frame_id)")
     qos: str = _p("reliable", "image subscription QoS: reliable, best_effort, sensor_data")
-    qos_depth: int = _p(2, "image subscription queue depth (1-10; the node keeps 1 frame)")
+    qos_depth: int = _p(5, "image subscription queue depth (1-10; the node keeps 1 frame)")
     subscribe_raw: bool = _p(True, "subscribe to 'image' (sensor_msgs/Image)")
     subscribe_compressed: bool = _p(False, "subscribe to 'image/compressed'")
-    relocalize_wait_s: float = _p(10.0, "relocalize service: wait this long for the new fix "
+    relocalize_wait_s: float = _p(35.0, "relocalize service: wait this long for the new fix "
                                         "(0 = answer at once that it is scheduled)")
     max_frame_age_s: float = _p(2.0, "relocalize uses the latest frame if received within "
                                      "this many seconds, else the next frame")

@@ -113,9 +113,10 @@ class RuntimeStats:
             failed = self.last_failed
         if failed:
             return "ERROR", f"last query failed: {values['last_error']}", values
-        if self.mode == "continuous" and c["frames_received"] == 0 \
-                and now - self.started > NO_FRAMES_WARN_S:
-            return "WARN", "no images received", values
+        silent = now - (self.last_frame if self.last_frame is not None else self.started)
+        if self.mode == "continuous" and silent > NO_FRAMES_WARN_S:
+            return "WARN", (f"no images for {silent:.0f} s" if c["frames_received"]
+                            else "no images received"), values
         if recent_decode:
             return "WARN", f"undecodable frames ({c['decode_errors']}): {values['last_error']}", \
                 values
