@@ -6,7 +6,6 @@ retrieval without unbounded memory."""
 from __future__ import annotations
 
 import collections
-import concurrent.futures as cf
 import logging
 import time
 from pathlib import Path
@@ -15,21 +14,13 @@ from typing import Iterator, Sequence
 from vlm_vpr_ros.errors import ImageDecodeError, VlmVprError
 from vlm_vpr_ros.imageio import load_image
 from vlm_vpr_ros.pipeline import LocalizationPipeline
-from vlm_vpr_ros.priors.base import PriorProvider, PriorQuery, PriorResult
+from vlm_vpr_ros.priors.base import PriorProvider, PriorQuery, wait_prior
 
 log = logging.getLogger(__name__)
 
 RESULT_FIELDS = ["file", "lat", "lon", "prior_lat", "prior_lon", "prior_source", "prior_reason",
                  "submap", "ref_id", "uncertainty_m", "n_candidates", "flags",
                  "descriptor_ms", "retrieval_ms", "rerank_ms", "prior_latency_s"]
-
-
-def _wait(fut: "cf.Future[PriorResult]", source: str, timeout_s: float) -> PriorResult:
-    try:
-        return fut.result(timeout=timeout_s)
-    except cf.TimeoutError:
-        fut.cancel()
-        return PriorResult.failure(source, "timeout", latency_s=timeout_s)
 
 
 def localize_files(pipeline: LocalizationPipeline, provider: PriorProvider,
@@ -69,7 +60,7 @@ def localize_files(pipeline: LocalizationPipeline, provider: PriorProvider,
             t0 = time.perf_counter()
             desc = pipeline.describe(image)
             t_desc = (time.perf_counter() - t0) * 1e3
-            prior = _wait(fut, provider.name, prior_timeout_s)
+            prior = wait_prior(fut, provider.name, prior_timeout_s)
             hyp = pipeline.localize_descriptor(desc, prior)
         except VlmVprError as exc:
             log.warning("query %s failed: %s", f, exc)

@@ -40,7 +40,7 @@ def make_query(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
 
 def make_queries(out_dir: Path, seed: int = 0) -> Path:
     """Write query images + ``queries.csv`` (file, lat, lon ground truth); returns the CSV."""
-    from vlm_vpr_ros.cli.common import write_csv_atomic
+    from vlm_vpr_ros.csvio import write_csv_atomic
     from vlm_vpr_ros.map_build import read_coords_csv
 
     qdir = out_dir / "queries"
@@ -59,7 +59,7 @@ def make_queries(out_dir: Path, seed: int = 0) -> Path:
 
 def run_demo(out: str | Path, with_bag: bool = True) -> int:
     from vlm_vpr_ros.batch import RESULT_FIELDS, localize_files
-    from vlm_vpr_ros.cli.common import write_csv_atomic
+    from vlm_vpr_ros.csvio import write_csv_atomic
     from vlm_vpr_ros.evaluation import evaluate_results_csv, format_table
     from vlm_vpr_ros.localizer import LocalizerConfig
     from vlm_vpr_ros.map_build import build_map, read_file_column

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import csv
 import hashlib
 import json
 import logging
@@ -14,6 +13,7 @@ from typing import Any, Iterator, Mapping
 import numpy as np
 
 from vlm_vpr_ros.config import choose
+from vlm_vpr_ros.csvio import read_table
 from vlm_vpr_ros.descriptors import GlobalDescriptor, create_descriptor
 from vlm_vpr_ros.errors import DataError, ImageDecodeError, MapError
 from vlm_vpr_ros.imageio import load_image
@@ -28,24 +28,15 @@ CHUNK = 128
 
 def read_coords_csv(path: str | Path) -> list[tuple[str, float, float]]:
     """Read ``file, lat, lon`` rows; invalid coordinates are a DataError naming the row."""
-    path = Path(path)
-    if not path.is_file():
-        raise DataError(f"coordinates CSV not found: {path}")
     rows: list[tuple[str, float, float]] = []
-    with path.open(newline="", encoding="utf-8") as fh:
-        reader = csv.DictReader(fh)
-        missing = {"file", "lat", "lon"} - set(reader.fieldnames or [])
-        if missing:
-            raise DataError(f"{path}: missing column(s) {sorted(missing)}; "
-                            f"has {reader.fieldnames}")
-        for n, row in enumerate(reader, start=2):
-            try:
-                lat, lon = float(row["lat"]), float(row["lon"])
-            except (TypeError, ValueError):
-                raise DataError(f"{path}:{n}: lat/lon not numbers: {row}") from None
-            if not valid_latlon(lat, lon):
-                raise DataError(f"{path}:{n}: ({lat}, {lon}) out of range")
-            rows.append((row["file"], lat, lon))
+    for n, row in enumerate(read_table(path, ("file", "lat", "lon"), "coordinates CSV"), 2):
+        try:
+            lat, lon = float(row["lat"]), float(row["lon"])
+        except (TypeError, ValueError):
+            raise DataError(f"{path}:{n}: lat/lon not numbers: {row}") from None
+        if not valid_latlon(lat, lon):
+            raise DataError(f"{path}:{n}: ({lat}, {lon}) out of range")
+        rows.append((row["file"], lat, lon))
     if not rows:
         raise DataError(f"{path}: no rows")
     return rows
@@ -213,11 +204,4 @@ def _extract(desc: GlobalDescriptor, root: Path, rows, work: Path, progress: boo
 
 def read_file_column(path: str | Path) -> list[str]:
     """The ``file`` column of a queries CSV (other columns are ignored)."""
-    path = Path(path)
-    if not path.is_file():
-        raise DataError(f"queries CSV not found: {path}")
-    with path.open(newline="", encoding="utf-8") as fh:
-        reader = csv.DictReader(fh)
-        if "file" not in (reader.fieldnames or []):
-            raise DataError(f"{path}: needs a 'file' column; has {reader.fieldnames}")
-        return [row["file"] for row in reader if row.get("file")]
+    return [row["file"] for row in read_table(path, ("file",), "queries CSV") if row["file"]]

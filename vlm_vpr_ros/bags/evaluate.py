@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import bisect
 import collections
-import concurrent.futures as cf
 import csv
 import dataclasses
 import logging
@@ -25,7 +24,7 @@ from vlm_vpr_ros.bags.reader import BagReader
 from vlm_vpr_ros.errors import BagError, VlmVprError
 from vlm_vpr_ros.evaluation import errors_km, summarize
 from vlm_vpr_ros.map_io import atomic_write_json
-from vlm_vpr_ros.priors.base import PriorProvider, PriorQuery, PriorResult
+from vlm_vpr_ros.priors.base import PriorProvider, PriorQuery, wait_prior
 
 log = logging.getLogger(__name__)
 
@@ -55,14 +54,6 @@ def _pair(gt: GroundTruth, t_ns: int, max_gap_s: float) -> tuple[int | None, flo
                key=lambda j: abs(gt.stamps[j] - t_ns))
     gap = abs(gt.stamps[best] - t_ns) / 1e9
     return (best, gap) if gap <= max_gap_s else (None, gap)
-
-
-def _wait(fut: "cf.Future[PriorResult]", source: str, timeout_s: float) -> PriorResult:
-    try:
-        return fut.result(timeout=timeout_s)
-    except cf.TimeoutError:
-        fut.cancel()
-        return PriorResult.failure(source, "timeout", latency_s=timeout_s)
 
 
 def _with_priors(frames: Iterator[Frame], provider: PriorProvider,
@@ -150,7 +141,7 @@ def _localize_frame(frame: Frame, fut: Any, pipeline: Any, provider: PriorProvid
         errors.append(f"frame {frame.index}: {frame.error}")
     else:
         try:
-            hyp = pipeline.localize_image(frame.rgb, _wait(fut, provider.name,
+            hyp = pipeline.localize_image(frame.rgb, wait_prior(fut, provider.name,
                                                            cfg.prior_timeout_s))
         except VlmVprError as exc:
             row.update({"flags": "error", "prior_reason": str(exc)})

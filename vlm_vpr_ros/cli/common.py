@@ -3,12 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import csv
-import os
-from pathlib import Path
-from typing import Iterable
 
 from vlm_vpr_ros.config import parse_kv
+from vlm_vpr_ros.csvio import write_csv_atomic  # noqa: F401  (re-exported for the CLI)
 from vlm_vpr_ros.localizer import LocalizerConfig
 from vlm_vpr_ros.priors import PriorProvider, available_prior_providers, create_prior_provider
 
@@ -67,17 +64,3 @@ def descriptor_options(args: argparse.Namespace) -> dict:
     if args.weights:
         opts["weights"] = args.weights
     return opts
-
-
-def write_csv_atomic(path: str | os.PathLike[str], fieldnames: list[str],
-                     rows: Iterable[dict]) -> None:
-    """Write a CSV through a temporary file and ``os.replace``."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    with tmp.open("w", newline="", encoding="utf-8") as fh:
-        w = csv.DictWriter(fh, fieldnames=fieldnames, extrasaction="ignore")
-        w.writeheader()
-        for row in rows:
-            w.writerow(row)
-    os.replace(tmp, path)

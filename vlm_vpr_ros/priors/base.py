@@ -79,15 +79,21 @@ class PriorProvider(abc.ABC):
 
     def get(self, query: PriorQuery, timeout_s: float | None = None) -> PriorResult:
         """Blocking convenience: wait for :meth:`request` at most ``timeout_s`` seconds."""
-        fut = self.request(query)
-        try:
-            return fut.result(timeout=timeout_s)
-        except cf.TimeoutError:
-            fut.cancel()
-            return PriorResult.failure(self.name, "timeout", latency_s=timeout_s or 0.0)
+        return wait_prior(self.request(query), self.name, timeout_s)
 
     def _compute(self, query: PriorQuery) -> PriorResult:  # pragma: no cover - abstract-ish
         raise NotImplementedError
 
     def close(self) -> None:
         """Cancel pending work and free resources."""
+
+
+def wait_prior(fut: "cf.Future[PriorResult]", source: str,
+               timeout_s: float | None) -> PriorResult:
+    """Wait for a prior future at most ``timeout_s`` seconds; a timeout cancels the request and
+    becomes a ``timeout`` failure value."""
+    try:
+        return fut.result(timeout=timeout_s)
+    except cf.TimeoutError:
+        fut.cancel()
+        return PriorResult.failure(source, "timeout", latency_s=timeout_s or 0.0)

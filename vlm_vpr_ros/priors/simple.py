@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import csv
 import logging
 import math
 import os
-from pathlib import Path
 
-from vlm_vpr_ros.errors import DataError, PriorError
+from vlm_vpr_ros.csvio import read_table
+from vlm_vpr_ros.errors import PriorError
 from vlm_vpr_ros.priors.base import Prior, PriorProvider, PriorQuery, PriorResult
 
 log = logging.getLogger(__name__)
@@ -46,27 +45,18 @@ class FixedPrior(PriorProvider):
 
 def read_prior_csv(path: str | os.PathLike[str]) -> dict[str, tuple[float, float]]:
     """Read a ``file, lat, lon`` CSV into {file: (lat, lon)}; blank/invalid rows are skipped."""
-    path = Path(path)
-    if not path.is_file():
-        raise DataError(f"priors CSV not found: {path}")
     out: dict[str, tuple[float, float]] = {}
-    with path.open(newline="", encoding="utf-8") as fh:
-        reader = csv.DictReader(fh)
-        missing = {"file", "lat", "lon"} - set(reader.fieldnames or [])
-        if missing:
-            raise DataError(f"{path}: missing column(s) {sorted(missing)}; "
-                            f"has {reader.fieldnames}")
-        bad = 0
-        for row in reader:
-            try:
-                lat, lon = float(row["lat"]), float(row["lon"])
-            except (TypeError, ValueError):
-                bad += 1
-                continue
-            if valid_latlon(lat, lon):
-                out[row["file"]] = (lat, lon)
-            else:
-                bad += 1
+    bad = 0
+    for row in read_table(path, ("file", "lat", "lon"), "priors CSV"):
+        try:
+            lat, lon = float(row["lat"]), float(row["lon"])
+        except (TypeError, ValueError):
+            bad += 1
+            continue
+        if valid_latlon(lat, lon):
+            out[row["file"]] = (lat, lon)
+        else:
+            bad += 1
     if bad:
         log.warning("%s: %d row(s) without a valid lat/lon are treated as 'no prior'", path, bad)
     return out
