@@ -143,7 +143,7 @@ def test_cli_fetch_list_check(hub, ckpt, tmp_path):
     assert proc.returncode == 2 and "choices: boq, cosplace" in proc.stderr
 
 
-def test_map_records_and_enforces_descriptor(tmp_path, demo_data, ckpt):
+def test_map_records_and_enforces_descriptor(tmp_path, demo_data, ckpt, caplog):
     """A map built with a deep descriptor stores model/release/preprocessing (no paths) and a
     pipeline with another descriptor refuses it."""
     from vlm_vpr_ros.map_build import build_map
@@ -169,6 +169,11 @@ def test_map_records_and_enforces_descriptor(tmp_path, demo_data, ckpt):
     assert (hyp.lat, hyp.lon) == pytest.approx((float(rows[1]["lat"]), float(rows[1]["lon"])))
     with pytest.raises(MapError, match="mixvpr"):
         LocalizationPipeline.open(out, descriptor="cosplace")
+    assert ident["weights_sha256"] and "another checkpoint" not in caplog.text
+    ident["weights_sha256"] = "0" * 64  # built with another checkpoint: loads, with a warning
+    (out / "manifest.json").write_text(json.dumps(manifest))
+    LocalizationPipeline.open(out, descriptor_config={"weights": str(ckpt)}, verify=False)
+    assert "another checkpoint of mixvpr" in caplog.text
     ident["preprocessing"]["resize"] = [384, 384]  # a map from other preprocessing is refused
     (out / "manifest.json").write_text(json.dumps(manifest))
     with pytest.raises(MapError, match="preprocessing"):

@@ -31,7 +31,12 @@ def descriptor_for_map(ref_map: ReferenceMap, expect: str | None = None,
     desc = create_descriptor(ident["name"], {**ident.get("config", {}), **dict(options or {})})
     if ref_map.descriptor_state:
         desc.load_state(ref_map.descriptor_state)
-    check_descriptor_identity(ident, desc.identity())
+    query_ident = desc.identity()
+    check_descriptor_identity(ident, query_ident)
+    built, now = ident.get("weights_sha256"), query_ident.get("weights_sha256")
+    if built and now and built != now:
+        log.warning("the map was built with another checkpoint of %s (sha256 %s..., now %s...):"
+                    " descriptors may not be comparable", ident["name"], built[:12], now[:12])
     return desc
 
 
