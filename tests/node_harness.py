@@ -10,6 +10,7 @@ real ROS 2 graph (rclpy + Fast DDS, loopback only). Not part of the package.
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import os
 import signal
@@ -18,7 +19,7 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import numpy as np
 
@@ -240,3 +241,22 @@ class GraphClient:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+@contextlib.contextmanager
+def node_and_client(params: dict[str, Any], log_path: Path, domain: int,
+                    compressed: bool = False) -> Iterator[tuple[NodeProcess, GraphClient]]:
+    """Start the node, connect a :class:`GraphClient` and wait until the node subscribes to
+    ``image`` (and ``image/compressed`` when asked); both are always stopped on exit."""
+    node = NodeProcess(params, log_path, domain).start()
+    client = None
+    try:
+        client = GraphClient(domain)
+        assert client.wait_subscribed(30.0), "node did not subscribe:\n" + node.log()
+        if compressed:
+            assert client.wait_subscribed(10.0, compressed=True), node.log()
+        yield node, client
+    finally:
+        if client is not None:
+            client.close()
+        node.stop()

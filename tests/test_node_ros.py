@@ -13,8 +13,7 @@ import cv2
 import numpy as np
 import pytest
 
-from node_harness import (GraphClient, NodeProcess, compressed_msg, domain_id, image_msg,
-                          stamp_of)
+from node_harness import compressed_msg, domain_id, image_msg, node_and_client, stamp_of
 from vlm_vpr_ros.geodesy import haversine_km
 from vlm_vpr_ros.imageio import encode_jpeg, load_image
 
@@ -46,21 +45,12 @@ def graph_a(demo_map, tmp_path_factory):
     """Continuous mode, fixed prior near the truth, raw + compressed subscriptions."""
     dom = domain_id()
     log = tmp_path_factory.mktemp("node_a") / "node.log"
-    node = NodeProcess({"map_dir": str(demo_map), "prior_provider": "fixed",
-                        "prior.lat": TRUTH[0] + 0.02, "prior.lon": TRUTH[1] - 0.02,
-                        "min_period_s": 0.2, "subscribe_compressed": True,
-                        "diagnostics_period_s": 0.5, "relocalize_wait_s": 20.0}, log, dom)
-    node.start()
-    client = None
-    try:
-        client = GraphClient(dom)
-        assert client.wait_subscribed(30.0), "node did not subscribe:\n" + node.log()
-        assert client.wait_subscribed(10.0, compressed=True)
+    params = {"map_dir": str(demo_map), "prior_provider": "fixed",
+              "prior.lat": TRUTH[0] + 0.02, "prior.lon": TRUTH[1] - 0.02,
+              "min_period_s": 0.2, "subscribe_compressed": True,
+              "diagnostics_period_s": 0.5, "relocalize_wait_s": 20.0}
+    with node_and_client(params, log, dom, compressed=True) as (node, client):
         yield node, client
-    finally:
-        if client is not None:
-            client.close()
-        node.stop()
 
 
 def test_fix_near_ground_truth(graph_a, rgb):
@@ -167,17 +157,12 @@ def test_slow_vlm_does_not_delay_intake_on_trigger(demo_map, tmp_path, rgb):
     frame = cv2.resize(rgb, (640, 480), interpolation=cv2.INTER_AREA)
     dom = domain_id()
     with ChatServer("slow", lat=TRUTH[0] + 0.1, lon=TRUTH[1], delay_s=5.0) as srv:
-        node = NodeProcess({"map_dir": str(demo_map), "prior_provider": "openai",
-                            "prior.base_url": srv.base_url, "prior.model": "fixture-model",
-                            "prior.max_retries": 0, "prior.timeout_s": 30.0,
-                            "prior_timeout_s": 30.0, "mode": "on_trigger",
-                            "diagnostics_period_s": 0.25, "relocalize_wait_s": 30.0},
-                           tmp_path / "node.log", dom)
-        node.start()
-        client = None
-        try:
-            client = GraphClient(dom)
-            assert client.wait_subscribed(30.0), node.log()
+        params = {"map_dir": str(demo_map), "prior_provider": "openai",
+                  "prior.base_url": srv.base_url, "prior.model": "fixture-model",
+                  "prior.max_retries": 0, "prior.timeout_s": 30.0,
+                  "prior_timeout_s": 30.0, "mode": "on_trigger",
+                  "diagnostics_period_s": 0.25, "relocalize_wait_s": 30.0}
+        with node_and_client(params, tmp_path / "node.log", dom) as (node, client):
             stamps = Stamps()
             tick = _publisher_at(client, frame, 30.0, stamps)
             client.wait_for(lambda: False, 1.5, tick=tick, period_s=0.01)  # warm up the graph
@@ -186,10 +171,6 @@ def test_slow_vlm_does_not_delay_intake_on_trigger(demo_map, tmp_path, rgb):
             resp = client.call_relocalize(40.0, tick=tick)
             waited = time.monotonic() - t0
             diags = [(d, t) for d, t in client.diags]
-        finally:
-            if client is not None:
-                client.close()
-            node.stop()
         assert resp is not None and resp.success, node.log()
         assert waited >= 4.5  # the answer waited for the 5 s VLM ...
         assert "prior openai:fixture-model" in resp.message and len(srv.requests) == 1
@@ -211,15 +192,10 @@ def test_dead_vlm_gives_flagged_fixes_then_recovers(demo_map, tmp_path, rgb):
 
     dom = domain_id()
     with ChatServer("500", fail_times=0, lat=TRUTH[0] + 0.1, lon=TRUTH[1]) as srv:
-        node = NodeProcess({"map_dir": str(demo_map), "prior_provider": "openai",
-                            "prior.base_url": srv.base_url, "prior.max_retries": 0,
-                            "min_period_s": 0.2, "diagnostics_period_s": 0.5,
-                            "frame_id": "vpr_camera"}, tmp_path / "node.log", dom)
-        node.start()
-        client = None
-        try:
-            client = GraphClient(dom)
-            assert client.wait_subscribed(30.0), node.log()
+        params = {"map_dir": str(demo_map), "prior_provider": "openai",
+                  "prior.base_url": srv.base_url, "prior.max_retries": 0,
+                  "min_period_s": 0.2, "diagnostics_period_s": 0.5, "frame_id": "vpr_camera"}
+        with node_and_client(params, tmp_path / "node.log", dom) as (node, client):
             stamps = Stamps()
             tick = lambda: client.image_pub.publish(image_msg(rgb, stamps.next()))  # noqa: E731
             flagged = client.wait_for(lambda: client.fixes and client.fixes[-1][0], 30.0,
@@ -232,10 +208,6 @@ def test_dead_vlm_gives_flagged_fixes_then_recovers(demo_map, tmp_path, rgb):
             good = client.wait_for(lambda: len(client.fixes) > n0 and
                                    client.fixes[-1][0].status.status == FIX and
                                    client.fixes[-1][0], 30.0, tick=tick, period_s=0.1)
-        finally:
-            if client is not None:
-                client.close()
-            node.stop()
     assert flagged.status.status == NO_FIX and flagged.header.frame_id == "vpr_camera"
     cov = np.asarray(flagged.position_covariance, dtype=float)
     assert np.all(np.isfinite(cov)) and cov[0] >= 25_000.0 ** 2  # the fallback floor
