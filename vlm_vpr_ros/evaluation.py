@@ -84,19 +84,13 @@ def _float(v) -> float | None:
 
 def evaluate_results_csv(results_csv, ground_truth_csv) -> tuple[dict, dict]:
     """Summary (JSON shape of ``vlm-vpr evaluate``) of a results CSV, plus extra statistics."""
-    import csv
     import os
 
-    from vlm_vpr_ros.errors import DataError
+    from vlm_vpr_ros.csvio import read_table
 
     gt = read_ground_truth(ground_truth_csv)
     gt_base = {os.path.basename(k): v for k, v in gt.items()}
-    try:
-        fh = open(results_csv, newline="", encoding="utf-8")
-    except OSError as exc:
-        raise DataError(f"cannot read results {results_csv}: {exc}") from exc
-    with fh:
-        rows = list(csv.DictReader(fh))
+    rows = read_table(results_csv, ("file", "lat", "lon"), "results CSV")
     est, truth, sigma, flagged, missing = [], [], [], 0, 0
     for row in rows:
         g = gt.get(row.get("file", "")) or gt_base.get(os.path.basename(row.get("file", "")))
