@@ -2,8 +2,8 @@
 
 The query logic lives in :mod:`vlm_vpr_ros.runtime` (pure), message conversions in
 :mod:`msg_adapters`, the parameter schema in :mod:`vlm_vpr_ros.node_config`. Callback groups:
-images, the relocalize service and the diagnostics timer each have their own mutually exclusive
-group under a MultiThreadedExecutor; queries run on the runtime's worker thread, so a slow VLM
+images, the relocalize and map_reload services and the diagnostics timer each have their own
+mutually exclusive group under a MultiThreadedExecutor; queries run on the runtime's worker thread, so a slow VLM
 never delays image intake and a waiting service call never blocks the executor.
 """
 
@@ -105,6 +105,8 @@ class VlmVprNode(Node):
             topics.append(self.resolve_topic_name("image/compressed"))
         self.create_service(Trigger, "relocalize", self._on_relocalize,
                             callback_group=MutuallyExclusiveCallbackGroup())
+        self.create_service(Trigger, "map_reload", self._on_map_reload,
+                            callback_group=MutuallyExclusiveCallbackGroup())
         self.create_timer(cfg.diagnostics_period_s, self._publish_diagnostics,
                           callback_group=MutuallyExclusiveCallbackGroup())
         self.add_on_set_parameters_callback(self._reject_changes)
@@ -134,6 +136,13 @@ class VlmVprNode(Node):
         response.success, response.message = outcome_summary(outcome, time.monotonic() - t0)
         return response
 
+    def _on_map_reload(self, request, response):
+        """Swap in the map re-read from map_dir (e.g. grown by 'vlm-vpr map add') between two
+        queries; on failure the current map stays in use."""
+        response.success, response.message = self.runtime.reload_map()
+        self.pipeline = self.runtime.pipeline
+        return response
+
     def _reject_changes(self, params) -> SetParametersResult:
         return SetParametersResult(
             successful=False, reason=f"{NODE_NAME} reads its parameters at start-up; restart "
@@ -158,8 +167,10 @@ class VlmVprNode(Node):
 
     def _publish_diagnostics(self) -> None:
         level, message, values = self.runtime.stats.report(busy=self.runtime.busy)
+        m = self.runtime.pipeline.map
         values = {"map_dir": self.cfg.map_dir, "descriptor": self.pipeline.descriptor.name,
-                  **values}
+                  "map_references": m.n_references,
+                  "map_generation": m.manifest.get("generation", 0), **values}
         self.diag_pub.publish(diagnostic_array(
             self.get_clock().now().nanoseconds, f"{self.get_name()}: VPR geo-localization",
             self.cfg.hardware_id, level, message, values))

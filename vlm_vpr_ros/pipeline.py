@@ -40,14 +40,20 @@ def descriptor_for_map(ref_map: ReferenceMap, expect: str | None = None,
     return desc
 
 
+def _same_state(a: Mapping[str, np.ndarray], b: Mapping[str, np.ndarray]) -> bool:
+    return a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)
+
+
 class LocalizationPipeline:
     """Bundle of map, descriptor and localizer used by the CLI, the node and the evaluators."""
 
     def __init__(self, ref_map: ReferenceMap, descriptor: GlobalDescriptor,
-                 localizer: Localizer) -> None:
+                 localizer: Localizer,
+                 descriptor_config: Mapping[str, Any] | None = None) -> None:
         self.map = ref_map
         self.descriptor = descriptor
         self.localizer = localizer
+        self.descriptor_config = dict(descriptor_config or {})
 
     @classmethod
     def open(cls, map_dir: str | os.PathLike[str], descriptor: str | None = None,
@@ -58,7 +64,26 @@ class LocalizationPipeline:
         desc = descriptor_for_map(ref_map, descriptor, descriptor_config)
         if not isinstance(localizer, LocalizerConfig):
             localizer = from_mapping(LocalizerConfig, localizer, "localizer")
-        return cls(ref_map, desc, Localizer(ref_map, localizer))
+        return cls(ref_map, desc, Localizer(ref_map, localizer), descriptor_config)
+
+    def reloaded(self, verify: bool = True) -> "LocalizationPipeline":
+        """A new pipeline on the map re-read from the same folder (e.g. after ``vlm-vpr map
+        add``), with the same localizer settings. The descriptor object is reused when the
+        map's descriptor identity and state are unchanged (no model reload). MapError when the
+        folder no longer holds a valid map of a comparable descriptor; ``self`` is untouched."""
+        if self.map.path is None:
+            raise MapError("this pipeline's map was not loaded from a folder; nothing to reload")
+        ref_map = ReferenceMap.load(self.map.path, verify=verify)
+        same = (ref_map.descriptor_identity == self.map.descriptor_identity
+                and _same_state(ref_map.descriptor_state, self.map.descriptor_state))
+        if same:
+            desc = self.descriptor
+        else:
+            desc = descriptor_for_map(ref_map, self.descriptor.name, self.descriptor_config)
+            log.warning("map %s now has another descriptor state or identity: descriptor "
+                        "recreated", ref_map.path)
+        return LocalizationPipeline(ref_map, desc, Localizer(ref_map, self.localizer.config),
+                                    self.descriptor_config)
 
     def describe(self, image: np.ndarray) -> np.ndarray:
         return self.descriptor.describe_one(image)

@@ -108,6 +108,7 @@ class QueryRuntime:
         self._stop = False
         self.busy = False
         self._decode_log = Throttle(5.0)
+        self._reload_lock = threading.Lock()
         self._thread = threading.Thread(target=self._run, name="vlm_vpr_query", daemon=True)
 
     # -- called from ROS callbacks ---------------------------------------------------------------
@@ -127,6 +128,30 @@ class QueryRuntime:
                 self._ticket = RelocalizeTicket()
             self._cond.notify_all()
             return self._ticket
+
+    def reload_map(self) -> tuple[bool, str]:
+        """Re-read the map from disk and swap it in between two queries (the running query
+        finishes on the map it started with; the next one uses the new map). On failure the
+        current map stays in use. Returns (success, one-line message)."""
+        with self._reload_lock:  # one reload at a time; queries keep running meanwhile
+            old = self.pipeline
+            t0 = time.monotonic()
+            try:
+                new = old.reloaded()
+            except VlmVprError as exc:
+                self.stats.count("map_reload_failures")
+                log.error("map reload failed, keeping the current map: %s", exc)
+                return False, f"map reload failed, the current map stays in use: {exc}"
+            with self._cond:
+                self.pipeline = new
+            self.stats.count("map_reloads")
+            om, nm = old.map, new.map
+            msg = (f"map {nm.path} reloaded in {time.monotonic() - t0:.1f} s: "
+                   f"{om.n_references} -> {nm.n_references} references, {len(om.submaps)} -> "
+                   f"{len(nm.submaps)} submaps (generation {om.manifest.get('generation', 0)} -> "
+                   f"{nm.manifest.get('generation', 0)})")
+            log.info("%s", msg)
+            return True, msg
 
     # -- lifecycle -----
     def start(self) -> None:
@@ -222,8 +247,9 @@ class QueryRuntime:
         t1 = time.monotonic()
         encoded = self._encoded(frame.msg) if self._encoded else None
         future = self._request_prior(PriorQuery(image=rgb, encoded=encoded, key=frame.key))
+        pipe = self.pipeline  # one map for the whole query, even if reload_map() swaps it now
         try:
-            desc = self.pipeline.describe(rgb)
+            desc = pipe.describe(rgb)
         except VlmVprError as exc:
             future.cancel()
             out.error = f"descriptor failed: {exc}"
@@ -231,7 +257,7 @@ class QueryRuntime:
         t2 = time.monotonic()
         prior = self._await_prior(future, t1)
         t3 = time.monotonic()
-        hyp = self.pipeline.localize_descriptor(desc, prior)
+        hyp = pipe.localize_descriptor(desc, prior)
         t4 = time.monotonic()
         out.hypothesis = hyp
         out.timings_ms = {

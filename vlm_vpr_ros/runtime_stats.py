@@ -13,7 +13,8 @@ RECENT_ERROR_S = 10.0
 #: continuous mode without any frame for this long is a WARN
 NO_FRAMES_WARN_S = 5.0
 _COUNTERS = ("frames_received", "frames_processed", "frames_dropped", "decode_errors",
-             "queries", "fixes", "flagged_fixes", "query_errors", "relocalize_requests")
+             "queries", "fixes", "flagged_fixes", "query_errors", "relocalize_requests",
+             "map_reloads", "map_reload_failures")
 
 
 class Throttle:

@@ -18,10 +18,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("build-map", help="build a map folder from geotagged reference images",
                        description="Describe every reference image, split the references into "
                                    "submaps and write FAISS indices. Resumable: re-running "
-                                   "after an interruption continues where it stopped.")
-    p.add_argument("--images", required=True, metavar="DIR", help="folder of reference images")
-    p.add_argument("--coords", required=True, metavar="CSV",
+                                   "after an interruption continues where it stopped. With "
+                                   "--bag: a teach run (camera + NavSatFix rosbag2 bag) gives "
+                                   "the references (see docs/teach.md).")
+    p.add_argument("--images", metavar="DIR", help="folder of reference images")
+    p.add_argument("--coords", metavar="CSV",
                    help="CSV with columns file (relative to DIR), lat, lon")
+    add_teach_args(p)
     p.add_argument("--out", required=True, metavar="MAP", help="map folder to write")
     p.add_argument("--descriptor", default="vlad_rootsift", metavar="NAME",
                    help="descriptor preset (see 'vlm-vpr descriptors'; default vlad_rootsift)")
@@ -69,9 +72,56 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_demo)
 
 
+def add_teach_args(p: argparse.ArgumentParser) -> None:
+    """--bag and the teach-run options (build-map, map add)."""
+    g = p.add_argument_group("teach run (references from a rosbag2 bag, MCAP or sqlite3)")
+    g.add_argument("--bag", metavar="BAG", help="bag folder, .mcap or .db3 with a camera topic "
+                   "and a sensor_msgs/NavSatFix topic (instead of --images/--coords)")
+    g.add_argument("--image-topic", metavar="T", default=None,
+                   help="Image or CompressedImage topic (default: the bag's only one)")
+    g.add_argument("--fix-topic", metavar="T", default=None,
+                   help="NavSatFix topic (default: the bag's only one)")
+    g.add_argument("--fix-tolerance-s", type=float, default=0.5, metavar="S",
+                   help="a frame needs a fix at most S seconds before and after it (default 0.5)")
+    g.add_argument("--min-spacing-m", type=float, default=2.0, metavar="M",
+                   help="keep a frame only M metres from the last kept one (default 2)")
+    g.add_argument("--max-fix-sigma-m", type=float, default=10.0, metavar="M",
+                   help="ignore fixes whose horizontal standard deviation exceeds M (default 10)")
+
+
+def teach_config(args: argparse.Namespace):
+    from vlm_vpr_ros.bags.teach import TeachConfig
+
+    return TeachConfig(args.image_topic, args.fix_topic, args.fix_tolerance_s,
+                       args.min_spacing_m, args.max_fix_sigma_m)
+
+
+def check_source_args(args: argparse.Namespace) -> None:
+    """Exactly one reference source: --bag, or --images with --coords."""
+    from vlm_vpr_ros.errors import ConfigError
+
+    if args.bag and (args.images or args.coords):
+        raise ConfigError("give either --bag or --images/--coords, not both")
+    if not args.bag and not (args.images and args.coords):
+        raise ConfigError("give --images DIR and --coords CSV, or --bag BAG")
+
+
 def cmd_build_map(args: argparse.Namespace) -> int:
     from vlm_vpr_ros.map_build import build_map
 
+    check_source_args(args)
+    if args.bag:
+        from vlm_vpr_ros.bags.teach import build_map_from_bag
+
+        m, res = build_map_from_bag(
+            args.bag, args.out, teach_config(args), overwrite=args.overwrite,
+            descriptor=args.descriptor, descriptor_config=descriptor_options(args),
+            partition=args.partition, clusters=args.clusters, index=args.index)
+        print(res.describe())
+        print(f"map {args.out}: {m.n_references} references, {len(m.submaps)} submaps "
+              f"({m.partition_method}), descriptor {m.descriptor_identity['name']} "
+              f"{m.dim}-D, images stored in the map")
+        return 0
     m = build_map(args.images, args.coords, args.out, descriptor=args.descriptor,
                   descriptor_config=descriptor_options(args), partition=args.partition,
                   clusters=args.clusters, overwrite=args.overwrite, index=args.index)

@@ -1,0 +1,477 @@
+"""Growing and shrinking a map in place: ``vlm-vpr map add`` / ``map remove``.
+
+An edit keeps the map's descriptor state (codebook, PCA): new references are described exactly
+as the map's own were, so a map can grow drive by drive without being rebuilt. New references
+join the submap their position belongs to (same country; nearest K-means centroid when within
+``FIT_SLACK`` times that submap's radius, at least ``FIT_FLOOR_M``); those that fit none form new
+submaps. Only the affected submaps are rewritten.
+
+Atomicity: every file an edit writes has a new name (``submaps/<id>.g<generation>.*``), the
+manifest is replaced last with ``os.replace`` (the commit point), then the files no manifest
+lists any more are deleted. An edit that fails before the commit deletes what it wrote and
+leaves the old map as it was; a reader that loaded the old manifest keeps a complete map. One
+edit at a time (``MAP/.edit.lock``).
+
+Maps may hold their reference images (teach maps built from a bag): ``MAP/images/<id>``, listed
+with size and sha256 in ``MAP/images/index.g<generation>.json`` (itself in the manifest's
+``files``). Adding to such a map copies the new images in; removing deletes them.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+import fcntl
+import json
+import logging
+import math
+import os
+import shutil
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable, Iterator, Mapping, Sequence
+
+import numpy as np
+
+from vlm_vpr_ros.errors import DataError, ImageDecodeError, MapError
+from vlm_vpr_ros.geodesy import haversine_km, spherical_mean
+from vlm_vpr_ros.map_io import (MANIFEST, ReferenceMap, Submap, atomic_save_npy,
+                                atomic_write_index, atomic_write_json, sha256_file)
+
+log = logging.getLogger(__name__)
+
+#: a reference fits a K-means submap within this multiple of the submap's radius ...
+FIT_SLACK = 1.5
+#: ... and always within this distance of its centroid (metres)
+FIT_FLOOR_M = 100.0
+IMAGES_DIR = "images"
+CHUNK = 64
+
+
+@dataclass
+class EditResult:
+    map_dir: Path
+    operation: str  # "add" or "remove"
+    generation: int
+    n_references: int
+    n_submaps: int
+    changed: list[str] = field(default_factory=list)  # submaps rewritten
+    created: list[str] = field(default_factory=list)  # submaps new in this edit
+    dropped: list[str] = field(default_factory=list)  # submaps emptied by a removal
+    count: int = 0  # references added or removed
+    skipped: list[str] = field(default_factory=list)  # unreadable images (add)
+
+    def describe(self) -> str:
+        verb = "added" if self.operation == "add" else "removed"
+        parts = [f"map {self.map_dir}: {self.count} references {verb}, now "
+                 f"{self.n_references} in {self.n_submaps} submaps (generation "
+                 f"{self.generation}); rewrote {len(self.changed)} submap(s)"]
+        if self.created:
+            parts.append(f"new submaps {', '.join(self.created)}")
+        if self.dropped:
+            parts.append(f"emptied submaps dropped {', '.join(self.dropped)}")
+        if self.skipped:
+            parts.append(f"{len(self.skipped)} unreadable image(s) skipped")
+        return "; ".join(parts)
+
+
+# -- locking and committing ---------------------------------------------------------------------
+@contextlib.contextmanager
+def edit_lock(map_dir: Path) -> Iterator[None]:
+    """Exclusive lock on a map folder for one edit (fails at once if another edit runs)."""
+    if not (map_dir / MANIFEST).is_file():
+        raise MapError(f"{map_dir} is not a map (no {MANIFEST})")
+    fh = open(map_dir / ".edit.lock", "a+")
+    try:
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise MapError(f"{map_dir} is being edited by another process; try again when it "
+                           "has finished") from None
+        yield
+    finally:
+        fh.close()
+
+
+class _Transaction:
+    """Files written under new names, then the manifest; rollback deletes the new files."""
+
+    def __init__(self, path: Path, manifest: dict) -> None:
+        self.path = path
+        self.old = manifest
+        self.new = copy.deepcopy(manifest)
+        self.written: list[str] = []
+
+    def record(self, rel: str) -> None:
+        self.written.append(rel)
+        p = self.path / rel
+        self.new["files"][rel] = {"bytes": p.stat().st_size, "sha256": sha256_file(p)}
+
+    def write_submap(self, sub: Submap, gen: int) -> dict:
+        stem = f"submaps/{sub.id}.g{gen}"
+        rel = {"index": f"{stem}.faiss", "coords": f"{stem}.coords.npy",
+               "ids": f"{stem}.ids.json"}
+        atomic_write_index(self.path / rel["index"], sub.index)
+        atomic_save_npy(self.path / rel["coords"], sub.coords.astype(np.float64))
+        atomic_write_json(self.path / rel["ids"], sub.ids)
+        for r in rel.values():
+            self.record(r)
+        return {"id": sub.id, "count": sub.count,
+                "centroid": [round(float(c), 7) for c in sub.centroid], "files": rel}
+
+    def commit(self) -> None:
+        listed = self.new["files"]
+        for rel in list(listed):
+            if not (self.path / rel).is_file():
+                raise MapError(f"internal: {rel} listed but not written")
+        atomic_write_json(self.path / MANIFEST, self.new)
+        gone = set(self.old["files"]) - set(listed)
+        for rel in sorted(gone):
+            with contextlib.suppress(FileNotFoundError):
+                (self.path / rel).unlink()
+
+    def rollback(self) -> None:
+        for rel in self.written:
+            if rel not in self.old["files"]:
+                with contextlib.suppress(FileNotFoundError):
+                    (self.path / rel).unlink()
+
+
+# -- images stored in the map --------------------------------------------------------------------
+def image_index(map_dir: Path, manifest: Mapping[str, Any]) -> dict[str, dict]:
+    """``{id: {"bytes", "sha256"}}`` of the images a map holds ({} when it holds none)."""
+    entry = manifest.get("images")
+    if not entry:
+        return {}
+    p = map_dir / entry["index"]
+    try:
+        return dict(json.loads(p.read_text(encoding="utf-8")))
+    except (OSError, ValueError, TypeError) as exc:
+        raise MapError(f"{map_dir}: cannot read the image index {entry['index']}: {exc}") from exc
+
+
+def _safe_rel(ref_id: str) -> Path:
+    p = Path(ref_id)
+    if p.is_absolute() or ".." in p.parts or not p.parts:
+        raise DataError(f"reference id {ref_id!r} is not a relative path inside the images "
+                        "folder; it cannot be stored in the map")
+    return p
+
+
+def _store_images(tx: _Transaction, src_root: Path, ids: Sequence[str], index: dict,
+                  gen: int, move: bool = False) -> None:
+    for ref_id in ids:
+        dst = tx.path / IMAGES_DIR / _safe_rel(ref_id)
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        tmp = dst.with_name(f".{dst.name}.tmp{os.getpid()}")
+        if move:
+            os.replace(src_root / ref_id, tmp)
+        else:
+            shutil.copyfile(src_root / ref_id, tmp)
+        os.replace(tmp, dst)
+        tx.written.append(f"{IMAGES_DIR}/{ref_id}")
+        index[ref_id] = {"bytes": dst.stat().st_size, "sha256": sha256_file(dst)}
+    _write_image_index(tx, index, gen)
+
+
+def _write_image_index(tx: _Transaction, index: dict, gen: int) -> None:
+    old = tx.old.get("images")
+    if old:
+        tx.new["files"].pop(old["index"], None)
+    if not index:
+        tx.new.pop("images", None)
+        return
+    rel = f"{IMAGES_DIR}/index.g{gen}.json"
+    atomic_write_json(tx.path / rel, dict(sorted(index.items())))
+    tx.record(rel)
+    tx.new["images"] = {"folder": IMAGES_DIR, "index": rel, "count": len(index)}
+
+
+def attach_images(map_dir: str | os.PathLike[str], images_dir: str | os.PathLike[str],
+                  ids: Sequence[str] | None = None) -> None:
+    """Move the reference images of a freshly built map (``images_dir/<id>``) into it and list
+    them in its manifest (used by ``build-map --bag``)."""
+    path = Path(map_dir)
+    with edit_lock(path):
+        manifest = json.loads((path / MANIFEST).read_text(encoding="utf-8"))
+        ref_ids = ids if ids is not None else ReferenceMap.load(path, verify=False).all_ids()
+        tx = _Transaction(path, manifest)
+        try:
+            _store_images(tx, Path(images_dir), list(ref_ids), image_index(path, manifest),
+                          int(manifest.get("generation", 0)), move=True)
+            tx.commit()
+        except BaseException:
+            tx.rollback()
+            raise
+
+
+def verify_images(map_dir: str | os.PathLike[str]) -> int:
+    """Check every image a map holds against its index (size, sha256); returns the count."""
+    path = Path(map_dir)
+    manifest = json.loads((path / MANIFEST).read_text(encoding="utf-8"))
+    index = image_index(path, manifest)
+    for ref_id, meta in index.items():
+        p = path / IMAGES_DIR / ref_id
+        if not p.is_file():
+            raise MapError(f"{path}: image {ref_id} is listed but missing")
+        if p.stat().st_size != meta["bytes"] or sha256_file(p) != meta["sha256"]:
+            raise MapError(f"{path}: image {ref_id} does not match its checksum")
+    return len(index)
+
+
+# -- where new references go ---------------------------------------------------------------------
+def _radius_km(sub: Submap) -> float:
+    if sub.count == 0:
+        return 0.0
+    return float(np.max(haversine_km(sub.centroid[0], sub.centroid[1], sub.coords[:, 0],
+                                     sub.coords[:, 1])))
+
+
+def _next_kmeans_ids(existing: Iterable[str], n: int) -> list[str]:
+    nums = [int(s[1:]) for s in existing if s[:1] == "k" and s[1:].isdigit()]
+    start = max(nums, default=-1) + 1
+    return [f"k{start + i:03d}" for i in range(n)]
+
+
+def assign_submaps(ref_map: ReferenceMap, coords: np.ndarray, seed: int = 0) -> list[str]:
+    """The submap id each new reference joins (an existing id, or a new one when none fits)."""
+    lat, lon = coords[:, 0], coords[:, 1]
+    method = ref_map.partition_method
+    if method == "none":
+        return [ref_map.submaps[0].id] * len(coords)
+    if method == "country":
+        from vlm_vpr_ros.partition import country_codes
+
+        return country_codes(lat, lon)
+    if method != "kmeans":
+        raise MapError(f"cannot add to a map partitioned by {method!r}")
+    cents = ref_map.centroids
+    radius = np.array([max(FIT_SLACK * _radius_km(s), FIT_FLOOR_M / 1000.0)
+                       for s in ref_map.submaps])
+    out: list[str | None] = []
+    for a, b in zip(lat, lon):
+        d = np.atleast_1d(haversine_km(a, b, cents[:, 0], cents[:, 1]))
+        k = int(np.argmin(d))
+        out.append(ref_map.submaps[k].id if d[k] <= radius[k] else None)
+    left = [i for i, s in enumerate(out) if s is None]
+    if left:
+        from vlm_vpr_ros.partition import partition_kmeans
+
+        size = max(1, int(np.median([s.count for s in ref_map.submaps])))
+        part = partition_kmeans(lat[left], lon[left], math.ceil(len(left) / size), seed)
+        names = _next_kmeans_ids((s.id for s in ref_map.submaps), len(part.names))
+        for i, lab in zip(left, part.labels):
+            out[i] = names[int(lab)]
+        log.info("%d new reference(s) fit no submap: %d new submap(s) %s", len(left),
+                 len(names), ", ".join(names))
+    return [str(s) for s in out]
+
+
+# -- add ------------------------------------------------------------------------------------------
+def _describe(desc, root: Path, rows: Sequence[tuple[str, float, float]],
+              progress: bool) -> tuple[np.ndarray, list[int], list[str]]:
+    from vlm_vpr_ros.imageio import load_image
+
+    feats, good, skipped = [], [], []
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(rows), desc="describe", unit="img", disable=None, leave=False)
+    for s in range(0, len(rows), CHUNK):
+        images, idx = [], []
+        for i in range(s, min(len(rows), s + CHUNK)):
+            try:
+                images.append(load_image(root / rows[i][0]))
+                idx.append(i)
+            except ImageDecodeError as exc:
+                log.warning("skipping reference: %s", exc)
+                skipped.append(rows[i][0])
+        if images:
+            feats.append(np.asarray(desc.describe(images), np.float32))
+            good += idx
+        if bar is not None:
+            bar.update(min(len(rows), s + CHUNK) - s)
+    if bar is not None:
+        bar.close()
+    dim = desc.dim
+    return (np.concatenate(feats) if feats else np.zeros((0, dim), np.float32)), good, skipped
+
+
+def _vectors(sub: Submap) -> np.ndarray:
+    return sub.index.reconstruct_n(0, sub.index.ntotal)
+
+
+def _rebuilt(kind: str, sub_id: str, vectors: np.ndarray, coords: np.ndarray,
+             ids: list[str]) -> Submap:
+    from vlm_vpr_ros.map_build import new_index
+
+    index = new_index(kind, vectors.shape[1])
+    index.add(np.ascontiguousarray(vectors, dtype=np.float32))
+    centroid = spherical_mean(coords[:, 0], coords[:, 1])
+    return Submap(sub_id, centroid, np.asarray(coords, np.float64), list(ids), index)
+
+
+def add_references(map_dir: str | os.PathLike[str], images_dir: str | os.PathLike[str],
+                   rows: Sequence[tuple[str, float, float]], descriptor: str | None = None,
+                   descriptor_config: Mapping[str, Any] | None = None,
+                   store_images: bool | None = None, move_images: bool = False,
+                   source: Mapping[str, Any] | None = None, progress: bool = True,
+                   seed: int = 0) -> EditResult:
+    """Describe ``rows`` (``file, lat, lon``; files relative to ``images_dir``) with the map's
+    own descriptor and state and add them. ``descriptor``: the name the caller expects (a map
+    built with another one is refused). ``store_images``: copy the images into the map
+    (default: when the map already holds its images)."""
+    from vlm_vpr_ros.pipeline import descriptor_for_map
+
+    path, root = Path(map_dir), Path(images_dir)
+    if not rows:
+        raise DataError("nothing to add: no references given")
+    with edit_lock(path):
+        ref_map = ReferenceMap.load(path, verify=True)
+        desc = descriptor_for_map(ref_map, descriptor, descriptor_config)
+        known = set(ref_map.all_ids())
+        seen: set[str] = set()
+        dup = [f for f, _, _ in rows if f in known or (f in seen or seen.add(f))]
+        if dup:
+            raise DataError(f"{len(dup)} reference id(s) are already in the map or repeated, "
+                            f"e.g. {dup[:3]}; remove them first ('vlm-vpr map remove')")
+        manifest = ref_map.manifest
+        if store_images is None:
+            store_images = bool(manifest.get("images"))
+        if store_images:
+            for f, _, _ in rows:
+                _safe_rel(f)
+        t0 = time.monotonic()
+        feats, good, skipped = _describe(desc, root, rows, progress)
+        if not good:
+            raise MapError(f"no image could be read among the {len(rows)} references to add")
+        coords = np.array([[rows[i][1], rows[i][2]] for i in good], np.float64)
+        ids = [rows[i][0] for i in good]
+        target = assign_submaps(ref_map, coords, seed)
+        kind = manifest.get("index", "flat")
+        gen = int(manifest.get("generation", 0)) + 1
+        tx = _Transaction(path, manifest)
+        res = EditResult(path, "add", gen, 0, 0, count=len(ids), skipped=skipped)
+        try:
+            entries = {e["id"]: e for e in tx.new["submaps"]}
+            for sid in sorted(set(target)):
+                sel = [i for i, t in enumerate(target) if t == sid]
+                k = ref_map.submap_index(sid)
+                if k is None:
+                    sub = _rebuilt(kind, sid, feats[sel], coords[sel], [ids[i] for i in sel])
+                    res.created.append(sid)
+                else:
+                    old = ref_map.submaps[k]
+                    sub = _rebuilt(kind, sid, np.concatenate([_vectors(old), feats[sel]]),
+                                   np.concatenate([old.coords, coords[sel]]),
+                                   old.ids + [ids[i] for i in sel])
+                    for r in entries[sid]["files"].values():
+                        tx.new["files"].pop(r, None)
+                res.changed.append(sid)
+                entries[sid] = tx.write_submap(sub, gen)
+            if store_images:
+                _store_images(tx, root, ids, image_index(path, manifest), gen, move_images)
+            _finish_manifest(tx.new, list(entries.values()), gen, "add", len(ids), source)
+            tx.commit()
+        except BaseException:
+            tx.rollback()
+            raise
+        res.n_references, res.n_submaps = tx.new["n_references"], tx.new["n_submaps"]
+        log.info("%s (%.1f s)", res.describe(), time.monotonic() - t0)
+        return res
+
+
+def _finish_manifest(manifest: dict, entries: list[dict], gen: int, op: str, count: int,
+                     source: Mapping[str, Any] | None) -> None:
+    from vlm_vpr_ros import __version__
+
+    entries.sort(key=lambda e: e["id"])
+    manifest["submaps"] = entries
+    manifest["n_references"] = sum(int(e["count"]) for e in entries)
+    manifest["n_submaps"] = len(entries)
+    manifest["generation"] = gen
+    manifest["software"] = f"vlm_vpr_ros {__version__}"
+    src = manifest.setdefault("source", {})
+    if src.get("fingerprint"):  # the map no longer equals what build-map would rebuild
+        src["built_fingerprint"] = src.pop("fingerprint")
+    src.setdefault("edits", []).append({
+        "operation": op, "references": count, "generation": gen,
+        "time": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), **dict(source or {})})
+
+
+# -- remove ---------------------------------------------------------------------------------------
+def read_ids_file(path: str | os.PathLike[str]) -> list[str]:
+    """Reference ids to remove: one per line (``#`` comments and blank lines ignored), or a
+    CSV with a ``file`` column (e.g. a coordinates CSV)."""
+    p = Path(path)
+    if p.suffix.lower() == ".csv":
+        from vlm_vpr_ros.map_build import read_file_column
+
+        ids = read_file_column(p)
+    else:
+        try:
+            text = p.read_text(encoding="utf-8-sig")
+        except (OSError, UnicodeDecodeError) as exc:
+            raise DataError(f"cannot read the ids file {p}: {exc}") from None
+        ids = [ln.strip() for ln in text.splitlines() if ln.strip() and
+               not ln.lstrip().startswith("#")]
+    if not ids:
+        raise DataError(f"{p}: no reference ids")
+    return ids
+
+
+def remove_references(map_dir: str | os.PathLike[str], ids: Iterable[str],
+                      source: Mapping[str, Any] | None = None) -> EditResult:
+    """Remove references by id; unknown ids are an error (nothing is changed)."""
+    path = Path(map_dir)
+    drop = set(ids)
+    with edit_lock(path):
+        ref_map = ReferenceMap.load(path, verify=True)
+        unknown = sorted(drop - set(ref_map.all_ids()))
+        if unknown:
+            raise DataError(f"{len(unknown)} id(s) are not in the map {path}, e.g. "
+                            f"{unknown[:3]}; nothing was removed")
+        if len(drop) >= ref_map.n_references:
+            raise MapError(f"removing all {ref_map.n_references} references would leave an "
+                           "empty map; build a new map instead")
+        manifest = ref_map.manifest
+        kind = manifest.get("index", "flat")
+        gen = int(manifest.get("generation", 0)) + 1
+        tx = _Transaction(path, manifest)
+        res = EditResult(path, "remove", gen, 0, 0, count=len(drop))
+        try:
+            entries = {e["id"]: e for e in tx.new["submaps"]}
+            for sub in ref_map.submaps:
+                keep = [j for j, i in enumerate(sub.ids) if i not in drop]
+                if len(keep) == sub.count:
+                    continue
+                for r in entries[sub.id]["files"].values():
+                    tx.new["files"].pop(r, None)
+                if not keep:
+                    del entries[sub.id]
+                    res.dropped.append(sub.id)
+                    continue
+                new = _rebuilt(kind, sub.id, _vectors(sub)[keep], sub.coords[keep],
+                               [sub.ids[j] for j in keep])
+                entries[sub.id] = tx.write_submap(new, gen)
+                res.changed.append(sub.id)
+            index = image_index(path, manifest)
+            stored = [i for i in drop if i in index]
+            if stored:
+                for i in stored:
+                    del index[i]
+                    tx.new["files"].pop(f"{IMAGES_DIR}/{i}", None)
+                _write_image_index(tx, index, gen)
+            _finish_manifest(tx.new, list(entries.values()), gen, "remove", len(drop), source)
+            tx.commit()
+        except BaseException:
+            tx.rollback()
+            raise
+        for i in stored:  # after the commit: the old manifest no longer needs them
+            with contextlib.suppress(FileNotFoundError):
+                (path / IMAGES_DIR / i).unlink()
+        res.n_references, res.n_submaps = tx.new["n_references"], tx.new["n_submaps"]
+        log.info("%s", res.describe())
+        return res
