@@ -46,3 +46,19 @@ def demo_country_map(tmp_path_factory, demo_data) -> Path:
     build_map(demo_data / "images", demo_data / "coords.csv", out,
               descriptor="vlad_rootsift_fast", partition="country", progress=False)
     return out
+
+
+@pytest.fixture(scope="session")
+def demo_half_map(tmp_path_factory, demo_data) -> tuple[list, Path]:
+    """(all coords rows, map of the first 36 demo images): vlad_rootsift_fast at 320 px,
+    K=6. Tests that edit it copy it first (map add/remove, map_reload)."""
+    from vlm_vpr_ros.map_build import build_map, read_coords_csv
+
+    rows = read_coords_csv(demo_data / "coords.csv")
+    work = tmp_path_factory.mktemp("demo_half")
+    csv = work / "h1.csv"
+    csv.write_text("file,lat,lon\n" + "".join(f"{f},{a!r},{b!r}\n" for f, a, b in rows[:36]))
+    build_map(demo_data / "images", csv, work / "map", descriptor="vlad_rootsift_fast",
+              descriptor_config={"max_side": 320}, partition="kmeans", clusters=6,
+              progress=False)
+    return rows, work / "map"

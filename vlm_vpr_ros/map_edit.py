@@ -330,6 +330,14 @@ def add_references(map_dir: str | os.PathLike[str], images_dir: str | os.PathLik
         raise DataError("nothing to add: no references given")
     with edit_lock(path):
         ref_map = ReferenceMap.load(path, verify=True)
+        built = ref_map.descriptor_identity.get("config", {})
+        other = {k: v for k, v in dict(descriptor_config or {}).items()
+                 if k in built and str(built[k]) != str(v)}
+        if other:
+            raise MapError(f"the map's descriptor was built with "
+                           f"{', '.join(f'{k}={built[k]!r}' for k in other)}; new references "
+                           f"must be described the same way (refused: "
+                           f"{', '.join(f'{k}={v!r}' for k, v in other.items())})")
         desc = descriptor_for_map(ref_map, descriptor, descriptor_config)
         known = set(ref_map.all_ids())
         seen: set[str] = set()

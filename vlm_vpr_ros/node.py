@@ -3,8 +3,9 @@
 The query logic lives in :mod:`vlm_vpr_ros.runtime` (pure), message conversions in
 :mod:`msg_adapters`, the parameter schema in :mod:`vlm_vpr_ros.node_config`. Callback groups:
 images, the relocalize and map_reload services and the diagnostics timer each have their own
-mutually exclusive group under a MultiThreadedExecutor; queries run on the runtime's worker thread, so a slow VLM
-never delays image intake and a waiting service call never blocks the executor.
+mutually exclusive group under a MultiThreadedExecutor; queries run on the runtime's worker
+thread, so a slow VLM never delays image intake and a waiting service call never blocks the
+executor.
 """
 
 from __future__ import annotations
