@@ -61,17 +61,23 @@ def main() -> int:
     ap.add_argument("--descriptor", default="vlad_rootsift")
     ap.add_argument("--clusters", type=int, default=10)
     ap.add_argument("--keep", default=None, metavar="DIR", help="keep the maps here")
+    ap.add_argument("--limit", type=int, default=None, metavar="N",
+                    help="only the first N database images (smoke test)")
+    ap.add_argument("--descriptor-option", action="append", default=[], metavar="KEY=VALUE")
     args = ap.parse_args()
     root = Path(args.shared) / "data" / "sf_night"
     if not root.is_dir():
         print(f"{root} not found: this benchmark needs ../shared", file=sys.stderr)
         return 2
-    rows = read_coords_csv(root / "database.csv")
+    rows = read_coords_csv(root / "database.csv")[:args.limit]
     queries = read_coords_csv(root / "queries.csv")
     h = len(rows) // 2
     work = Path(args.keep or tempfile.mkdtemp(prefix="bench_teach_"))
     work.mkdir(parents=True, exist_ok=True)
-    opts = dict(descriptor=args.descriptor, clusters=args.clusters, progress=False)
+    from vlm_vpr_ros.config import parse_kv
+
+    opts = dict(descriptor=args.descriptor, clusters=args.clusters, progress=False,
+                descriptor_config=parse_kv(args.descriptor_option))
     res, times = {}, {}
 
     t = time.monotonic()
@@ -86,14 +92,19 @@ def main() -> int:
     add_references(work / "grown", root, rows[h:], progress=False)
     times["add second half"] = time.monotonic() - t
 
-    # teach bags: first half driven and built, second half driven and added
-    for name, part, t0 in (("drive1", rows[:h], 1_700_000_000), ("drive2", rows[h:],
-                                                                 1_700_100_000)):
+    # teach bags: the whole database in one drive; first half driven and built, second half
+    # driven and added
+    for name, part, t0 in (("drive_all", rows, 1_700_200_000),
+                           ("drive1", rows[:h], 1_700_000_000),
+                           ("drive2", rows[h:], 1_700_100_000)):
         places = [Place((root / f).read_bytes(), a, b) for f, a, b in part]
         shutil.rmtree(work / name, ignore_errors=True)
         write_teach_bag(work / name, places, gaps=(10,), standstill=20, t0=t0 * 10**9)
     from vlm_vpr_ros.bags.teach import build_map_from_bag, extract_references
 
+    t = time.monotonic()
+    build_map_from_bag(work / "drive_all", work / "teach_all", overwrite=True, **opts)
+    times["build-map --bag drive_all"] = time.monotonic() - t
     t = time.monotonic()
     build_map_from_bag(work / "drive1", work / "teach", overwrite=True, **opts)
     times["build-map --bag drive1"] = time.monotonic() - t
@@ -109,10 +120,12 @@ def main() -> int:
     once = LocalizationPipeline.open(work / "once")
     grown = LocalizationPipeline.open(work / "grown")
     teach = LocalizationPipeline.open(work / "teach")
+    teach_all = LocalizationPipeline.open(work / "teach_all")
     qimg = [load_image(root / f) for f, _, _ in queries]
     qd_half = [half.describe(im) for im in qimg]  # the first half's descriptor state
     qd_once = [once.describe(im) for im in qimg]
     qd_teach = [teach.describe(im) for im in qimg]
+    qd_teach_all = [teach_all.describe(im) for im in qimg]
     # one-shot map of all references with the first half's descriptor state (the reference a
     # grown map must equal)
     feats = half.descriptor.describe([load_image(root / f) for f, _, _ in rows])
@@ -122,6 +135,8 @@ def main() -> int:
     same_pipe = LocalizationPipeline(same, half.descriptor, Localizer(same))
     res["first half only"] = (half.map, evaluate(half, qd_half, queries))
     res["all at once (state fitted on all)"] = (once.map, evaluate(once, qd_once, queries))
+    res["teach bag, one drive of all places"] = (teach_all.map,
+                                                 evaluate(teach_all, qd_teach_all, queries))
     res["all at once (first half's state)"] = (same, evaluate(same_pipe, qd_half, queries))
     res["first half + map add second half"] = (grown.map, evaluate(grown, qd_half, queries))
     res["teach bag drive1 + map add --bag drive2"] = (teach.map,

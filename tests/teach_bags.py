@@ -160,3 +160,19 @@ def mcap_to_db3(src: Path, dst: Path) -> Path:
     db.commit()
     db.close()
     return dst
+
+
+def drive_order(rows: Sequence[tuple[str, float, float]], min_gap_m: float = 2.0) -> list:
+    """``rows`` reordered so that no two consecutive places are closer than ``min_gap_m``
+    where possible (a drive does not photograph one spot twice in a row unless it stands
+    still; photo collections do)."""
+    from vlm_vpr_ros.bags.teach import distance_m
+
+    left, out = list(rows), []
+    while left:
+        k = 0
+        if out:
+            k = next((i for i, r in enumerate(left)
+                      if distance_m(out[-1][1], out[-1][2], r[1], r[2]) >= min_gap_m), 0)
+        out.append(left.pop(k))
+    return out
