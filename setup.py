@@ -22,7 +22,8 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
-        ("share/" + package_name + "/launch_scripts", _files("launch_scripts/*")),
+        # ROS convention: launch files (and their params/profile files) in share/<pkg>/launch
+        ("share/" + package_name + "/launch", _files("launch_scripts/*")),
     ],
     install_requires=["setuptools"],
     zip_safe=False,
@@ -34,6 +35,7 @@ setup(
         "console_scripts": [
             "vlm-vpr = vlm_vpr_ros.cli:main",
             "vlm_vpr_node = vlm_vpr_ros.node:main",
+            "vlm_vpr_lifecycle_node = vlm_vpr_ros.node:lifecycle_main",
         ],
     },
 )

@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # Start vlm_vpr_node without `ros2 launch` (pip-installed ROS 2 has no ros2 CLI).
 #
-#   launch_scripts/run_node.sh [PARAMS.yaml] [ros-args...]
+#   launch_scripts/run_node.sh [--lifecycle] [PARAMS.yaml] [ros-args...]
 #
+# --lifecycle starts the managed variant (unconfigured; drive it through its lifecycle services).
 # PARAMS.yaml defaults to launch_scripts/vlm_vpr_params.yaml; everything else is appended after
 # --ros-args (it overrides the file), e.g.
 #
@@ -18,6 +19,11 @@ py="${PYTHON:-}"
 if [[ -z "$py" ]]; then
   if [[ -x "$repo/.venv/bin/python" ]]; then py="$repo/.venv/bin/python"; else py=python3; fi
 fi
+variant=()
+if [[ $# -gt 0 && "$1" == "--lifecycle" ]]; then
+  variant=(--lifecycle)
+  shift
+fi
 params="$here/vlm_vpr_params.yaml"
 if [[ $# -gt 0 && ( "$1" == *.yaml || "$1" == *.yml ) ]]; then
   params="$1"
@@ -27,4 +33,4 @@ if [[ ! -f "$params" ]]; then
   echo "run_node.sh: params file not found: $params" >&2
   exit 2
 fi
-exec "$py" -m vlm_vpr_ros.node --ros-args --params-file "$params" "$@"
+exec "$py" -m vlm_vpr_ros.node "${variant[@]}" --ros-args --params-file "$params" "$@"

@@ -20,5 +20,5 @@ mkdir -p .venv/share/ament_index/resource_index/packages
 touch .venv/share/ament_index/resource_index/packages/vlm_vpr_ros
 rm -rf .venv/share/vlm_vpr_ros && mkdir -p .venv/share/vlm_vpr_ros
 ln -sfn "$(pwd)/package.xml" .venv/share/vlm_vpr_ros/package.xml
-ln -sfn "$(pwd)/launch_scripts" .venv/share/vlm_vpr_ros/launch_scripts
+ln -sfn "$(pwd)/launch_scripts" .venv/share/vlm_vpr_ros/launch  # = colcon's share/<pkg>/launch
 echo "vlm_vpr_ros installed in $(pwd)/.venv — activate with: source .venv/bin/activate"

@@ -51,13 +51,19 @@ class NodeProcess:
     """vlm_vpr_node in its own process; use as a context manager."""
 
     def __init__(self, params: dict[str, Any], log_path: Path, domain: int,
-                 extra_args: list[str] | None = None) -> None:
+                 extra_args: list[str] | None = None, lifecycle: bool = False,
+                 params_file: Path | None = None) -> None:
         self.params, self.log_path, self.domain = params, Path(log_path), domain
+        self.params_file = params_file  # given before the -p values (later ones win)
         self.extra_args = extra_args or []
+        self.lifecycle = lifecycle
         self.proc: subprocess.Popen | None = None
 
     def start(self) -> "NodeProcess":
-        args = [sys.executable, "-m", "vlm_vpr_ros.node", "--ros-args"]
+        args = [sys.executable, "-m", "vlm_vpr_ros.node", *(["--lifecycle"] if self.lifecycle
+                                                            else []), "--ros-args"]
+        if self.params_file is not None:
+            args += ["--params-file", str(self.params_file)]
         for k, v in self.params.items():
             args += ["-p", f"{k}:={_ros_value(v)}"]
         self._log = self.log_path.open("w")
@@ -219,6 +225,18 @@ class GraphClient:
         st = self.diags[-1][0].status[0]
         return {"_level": level_name(st.level), "_message": st.message,
                 **{kv.key: kv.value for kv in st.values}}
+
+    def call(self, srv_type: Any, name: str, request: Any, timeout_s: float = 20.0) -> Any:
+        """Call any service (waiting for it first); None when there is no answer in time."""
+        client = self.node.create_client(srv_type, name)
+        try:
+            if not client.wait_for_service(timeout_sec=timeout_s):
+                return None
+            fut = client.call_async(request)
+            self.wait_for(fut.done, timeout_s)
+            return fut.result() if fut.done() else None
+        finally:
+            self.node.destroy_client(client)
 
     def call_relocalize(self, timeout_s: float = 30.0,
                         tick: Callable[[], None] | None = None) -> Any:

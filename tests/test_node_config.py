@@ -23,7 +23,7 @@ def test_defaults_and_nested_settings(tmp_path):
                        "qos_overrides./parameter_events.publisher.depth": 1000})
     assert cfg.prior == {"lat": 1.5, "lon": 2} and cfg.descriptor_options == {"device": "cpu"}
     assert cfg.min_period_s == 2.0 and isinstance(cfg.min_period_s, float)
-    assert cfg.mode == "continuous" and cfg.qos == "reliable" and cfg.fallback_status == "no_fix"
+    assert cfg.mode == "continuous" and cfg.qos == "sensor_data" and cfg.fallback_status == "no_fix"
     lc = cfg.localizer_config()
     assert (lc.top_p, lc.use_submaps, lc.rerank, lc.n_submaps) == (50, True, True, 1)
     assert set(PARAMETERS) == {f for f in NodeConfig.__dataclass_fields__} - {
@@ -37,7 +37,7 @@ def test_defaults_and_nested_settings(tmp_path):
     ({"use_submaps": 1}, "'use_submaps' must be a bool"),
     ({"min_period_s": "fast"}, "'min_period_s' must be a float"),
     ({"mode": "sometimes"}, "'mode' is 'sometimes'; choices: continuous, on_trigger"),
-    ({"qos": "fast"}, "choices: reliable, best_effort, sensor_data"),
+    ({"qos": "fast"}, "choices: sensor_data, best_effort, reliable"),
     ({"fallback_status": "maybe"}, "choices: no_fix, fix"),
     ({"prior_timeout_s": 0.0}, "'prior_timeout_s' must be > 0"),
     ({"min_period_s": -1.0}, "'min_period_s' must be >= 0"),
@@ -73,8 +73,15 @@ def test_launch_file_is_valid_python_naming_the_console_script():
     funcs = [n.name for n in tree.body if isinstance(n, ast.FunctionDef)]
     assert "generate_launch_description" in funcs
     assert '"vlm_vpr_node"' in src and "vlm_vpr_params.yaml" in src
+    assert '"vlm_vpr_lifecycle_node"' in src and "LifecycleNode" in src
+    declared = {n.args[0].value for n in ast.walk(tree) if isinstance(n, ast.Call)
+                and getattr(n.func, "id", "") == "DeclareLaunchArgument"}
+    assert {"map_dir", "params_file", "image", "namespace", "use_sim_time", "qos",
+            "prior_provider", "lifecycle", "autostart", "fastdds_profile"} <= declared
+    assert '[share, "launch",' in src and '"vlm_vpr_params.yaml"]' in src  # installed
     setup = (LAUNCH.parent / "setup.py").read_text()
     assert "vlm_vpr_node = vlm_vpr_ros.node:main" in setup
+    assert "vlm_vpr_lifecycle_node = vlm_vpr_ros.node:lifecycle_main" in setup
 
 
 def test_run_node_script_rejects_bad_parameters_clearly(tmp_path):

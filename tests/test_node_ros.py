@@ -161,6 +161,9 @@ def test_slow_vlm_does_not_delay_intake_on_trigger(demo_map, tmp_path, rgb):
                   "prior.base_url": srv.base_url, "prior.model": "fixture-model",
                   "prior.max_retries": 0, "prior.timeout_s": 30.0,
                   "prior_timeout_s": 30.0, "mode": "on_trigger",
+                  # reliable like the publisher: this measures the executor, not UDP fragment
+                  # loss of best-effort raw frames (benchmarks/bench_qos.py measures that)
+                  "qos": "reliable",
                   "diagnostics_period_s": 0.25, "relocalize_wait_s": 30.0}
         with node_and_client(params, tmp_path / "node.log", dom) as (node, client):
             stamps = Stamps()

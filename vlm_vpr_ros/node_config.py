@@ -1,7 +1,9 @@
 """Parameter schema of ``vlm_vpr_node`` and its validation (pure: no ROS imports).
 
-Every parameter is a field of :class:`NodeConfig` with its default and a one-line description
-(``ros2 param describe`` and docs/node.md show the same text). Provider settings are nested
+Every parameter is a field of :class:`NodeConfig` with its default, a one-line description, an
+optional range and choices (:data:`PARAMETER_SPECS`); the node declares each one once from this
+schema with a ``ParameterDescriptor`` (type, description, range, read-only), so
+``ros2 param describe`` and docs/node.md show the same text. Provider settings are nested
 under ``prior.`` (``prior.base_url``, ``prior.model``, ``prior.lat`` ...) and descriptor options
 under ``descriptor_options.``; both are passed through to the registries, which reject unknown
 keys. Unknown top-level names and wrongly typed values raise :class:`ConfigError`.
@@ -10,24 +12,44 @@ keys. Unknown top-level names and wrongly typed values raise :class:`ConfigError
 from __future__ import annotations
 
 import dataclasses
+import fnmatch
 import math
 import os
 from dataclasses import dataclass, field
 from typing import Any, Mapping
 
 from vlm_vpr_ros.errors import ConfigError
+from vlm_vpr_ros.geodesy import MAX_DISTANCE_KM
 from vlm_vpr_ros.localizer import LocalizerConfig
 
 MODES = ("continuous", "on_trigger")
-QOS_CHOICES = ("reliable", "best_effort", "sensor_data")
+QOS_CHOICES = ("sensor_data", "best_effort", "reliable")
 FALLBACK_STATUS = ("no_fix", "fix")
 NESTED = ("prior", "descriptor_options")
+#: the largest radius a fix may carry (half the Earth's circumference, m)
+MAX_SIGMA_M = MAX_DISTANCE_KM * 1000.0
 #: parameters every rclpy node has
 ROS_STANDARD = frozenset({"use_sim_time", "start_type_description_service"})
 
 
-def _p(default: Any, doc: str) -> Any:
-    return field(default=default, metadata={"doc": doc})
+def _p(default: Any, doc: str, lo: float | None = None, hi: float | None = None,
+       choices: tuple[str, ...] | None = None) -> Any:
+    """A parameter field: default, description, inclusive range [lo, hi], string choices."""
+    return field(default=default, metadata={"doc": doc, "range": (lo, hi) if lo is not None
+                                            else None, "choices": choices})
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """What the node declares for one parameter (read by ``node.py``; no ROS types here)."""
+
+    name: str
+    default: Any
+    doc: str
+    kind: str  # "bool", "int", "float" or "str"
+    range: tuple[float, float] | None = None  # inclusive
+    choices: tuple[str, ...] | None = None
+    read_only: bool = True  # read once at start-up (configure): runtime changes are refused
 
 
 @dataclass(frozen=True)
@@ -36,29 +58,39 @@ class NodeConfig:
     descriptor: str = _p("", "descriptor name; must match the map's ('' = the map's own)")
     prior_provider: str = _p("none", "prior source: none, fixed, recorded, answers, openai; "
                                      "settings under prior.*")
-    prior_timeout_s: float = _p(30.0, "longest wait for a prior; then a flagged global fix")
-    top_p: int = _p(50, "references retrieved before the re-rank by distance to the prior")
+    prior_timeout_s: float = _p(30.0, "longest wait for a prior; then a flagged global fix",
+                              0.001, 3600.0)
+    top_p: int = _p(50, "references retrieved before the re-rank by distance to the prior", 1, 100000)
     use_submaps: bool = _p(True, "search only the submap(s) nearest to the prior")
     rerank: bool = _p(True, "re-rank the top-p references by haversine distance to the prior")
-    n_submaps: int = _p(1, "number of submaps searched around the prior")
+    n_submaps: int = _p(1, "number of submaps searched around the prior", 1, 100000)
     mode: str = _p("continuous", "continuous: query the latest frame every min_period_s; "
-                                 "on_trigger: only on the relocalize service")
-    min_period_s: float = _p(1.0, "least time between the starts of two queries")
+                                 "on_trigger: only on the relocalize service", choices=MODES)
+    min_period_s: float = _p(1.0, "least time between the starts of two queries (node clock: "
+                                 "sim time with use_sim_time)", 0.0, 86400.0)
     frame_id: str = _p("", "header.frame_id of the fix ('' = the image's frame_id)")
-    qos: str = _p("reliable", "image subscription QoS: reliable, best_effort, sensor_data")
-    qos_depth: int = _p(5, "image subscription queue depth (1-10; the node keeps 1 frame)")
+    qos: str = _p("sensor_data", "image subscription QoS: sensor_data (best effort: receives "
+                                  "from best-effort and reliable cameras), best_effort, reliable; "
+                                  "qos_overrides.<topic>.subscription.* override it",
+                  choices=QOS_CHOICES)
+    qos_depth: int = _p(5, "image subscription queue depth (1-10; the node keeps 1 frame)", 1, 10)
     subscribe_raw: bool = _p(True, "subscribe to 'image' (sensor_msgs/Image)")
     subscribe_compressed: bool = _p(False, "subscribe to 'image/compressed'")
     relocalize_wait_s: float = _p(35.0, "relocalize service: wait this long for the new fix "
-                                        "(0 = answer at once that it is scheduled)")
+                                        "(0 = answer at once that it is scheduled)", 0.0, 3600.0)
     max_frame_age_s: float = _p(2.0, "relocalize uses the latest frame if received within "
-                                     "this many seconds, else the next frame")
+                                     "this many seconds (node clock), else the next frame",
+                                0.001, 86400.0)
     fallback_status: str = _p("no_fix", "NavSatFix status of flagged (fallback) fixes: "
-                                        "no_fix or fix")
-    fallback_min_sigma_m: float = _p(25000.0, "least 1-sigma radius of a flagged fix (m)")
-    altitude_m: float = _p(0.0, "altitude published in the fix (images give none)")
-    altitude_sigma_m: float = _p(1000.0, "1-sigma of the published altitude (m)")
-    diagnostics_period_s: float = _p(1.0, "period of /diagnostics (also sent after each fix)")
+                                        "no_fix or fix", choices=FALLBACK_STATUS)
+    fallback_min_sigma_m: float = _p(25000.0, "least 1-sigma radius of a flagged fix (m)",
+                                     0.0, MAX_SIGMA_M)
+    altitude_m: float = _p(0.0, "altitude published in the fix (images give none)",
+                           -11000.0, 100000.0)
+    altitude_sigma_m: float = _p(1000.0, "1-sigma of the published altitude (m)", 0.001,
+                                 MAX_SIGMA_M)
+    diagnostics_period_s: float = _p(1.0, "period of /diagnostics (also sent after each fix)",
+                                     0.01, 3600.0)
     hardware_id: str = _p("vlm_vpr", "DiagnosticStatus.hardware_id")
     prior: dict = field(default_factory=dict, metadata={"doc": "prior provider settings"})
     descriptor_options: dict = field(default_factory=dict,
@@ -69,11 +101,15 @@ class NodeConfig:
                                rerank=self.rerank, n_submaps=self.n_submaps)
 
 
-#: scalar parameters: name → (default, description), in declaration order
-PARAMETERS: dict[str, tuple[Any, str]] = {
-    f.name: (f.default, f.metadata["doc"]) for f in dataclasses.fields(NodeConfig)
-    if f.name not in NESTED
+#: scalar parameters: name → spec, in declaration order
+PARAMETER_SPECS: dict[str, ParamSpec] = {
+    f.name: ParamSpec(f.name, f.default, f.metadata["doc"], str(f.type),
+                      f.metadata.get("range"), f.metadata.get("choices"))
+    for f in dataclasses.fields(NodeConfig) if f.name not in NESTED
 }
+#: scalar parameters: name → (default, description), in declaration order
+PARAMETERS: dict[str, tuple[Any, str]] = {n: (p.default, p.doc)
+                                          for n, p in PARAMETER_SPECS.items()}
 _TYPES = {f.name: f.type for f in dataclasses.fields(NodeConfig)}
 
 
@@ -141,7 +177,109 @@ def validate(cfg: NodeConfig) -> None:
     _require(cfg.subscribe_raw or cfg.subscribe_compressed,
              "subscribe_raw and subscribe_compressed are both false: nothing to localize")
     cfg.localizer_config()  # raises ConfigError on top_p/n_submaps < 1
+    for spec in PARAMETER_SPECS.values():  # the declared ranges (after the specific checks)
+        v = getattr(cfg, spec.name)
+        if spec.range is not None:
+            lo, hi = spec.range
+            _require(lo <= v <= hi, f"parameter {spec.name!r} must be in [{lo:g}, {hi:g}], "
+                                    f"got {v}")
+        if spec.choices is not None:
+            _choice(spec.name, v, spec.choices)
     from vlm_vpr_ros.priors import available_prior_providers
     from vlm_vpr_ros.config import choose
 
     choose(cfg.prior_provider, available_prior_providers(), "prior provider")
+
+
+# -- what the command line asked for -------------------------------------------------------------
+def _flatten(prefix: str, value: Any, out: dict[str, Any]) -> None:
+    if isinstance(value, dict):
+        for k, v in value.items():
+            _flatten(f"{prefix}.{k}" if prefix else str(k), v, out)
+    else:
+        out[prefix] = value
+
+
+def _applies(key: str, node_name: str, fqn: str) -> bool:
+    key = str(key)
+    if key.strip("/") in ("**", "*"):
+        return True
+    pattern = key.lstrip("/").replace("**", "*")
+    return key.strip("/") == node_name or fnmatch.fnmatchcase(fqn.lstrip("/"), pattern)
+
+
+def requested_parameters(argv: list[str] | None, node_name: str,
+                         namespace: str = "/") -> dict[str, Any]:
+    """Parameter values the user gave on the command line, in rcl's order of precedence.
+
+    ``--params-file FILE`` and ``-p name:=value`` (or ``--param``) inside ``--ros-args``, later
+    ones winning, values parsed as YAML like rcl does. rcl itself silently keeps an earlier
+    value when a later one has another type (``-p top_p:=abc`` after a params file with
+    ``top_p: 50`` starts with 50); comparing this with what rclpy got lets the node refuse that.
+    Raises :class:`ConfigError` for a missing or malformed params file.
+    """
+    import yaml
+
+    args = list(argv or [])
+    fqn = f"{namespace.rstrip('/')}/{node_name}"
+    for i, a in enumerate(args):  # -r __ns:=/x and -r __node:=y change what matches
+        if a in ("-r", "--remap") and i + 1 < len(args):
+            src, _, dst = args[i + 1].partition(":=")
+            if src == "__ns":
+                fqn = f"{dst.rstrip('/')}/{fqn.rsplit('/', 1)[1]}"
+            elif src == "__node":
+                node_name, fqn = dst, f"{fqn.rsplit('/', 1)[0]}/{dst}"
+    out: dict[str, Any] = {}
+    in_ros, i = False, 0
+    while i < len(args):
+        a = args[i]
+        if a == "--ros-args":
+            in_ros = True
+        elif a == "--":
+            in_ros = False
+        elif in_ros and a in ("-p", "--param", "--params-file") and i + 1 < len(args):
+            arg = args[i + 1]
+            i += 1
+            if a == "--params-file":
+                try:
+                    with open(arg, encoding="utf-8") as fh:
+                        doc = yaml.safe_load(fh) or {}
+                except OSError as exc:
+                    raise ConfigError(f"params file {arg}: {exc.strerror}") from None
+                except yaml.YAMLError as exc:
+                    raise ConfigError(f"params file {arg}: invalid YAML: "
+                                      f"{str(exc).splitlines()[0]}") from None
+                if not isinstance(doc, dict):
+                    raise ConfigError(f"params file {arg}: expected a mapping of node names")
+                for key, body in doc.items():
+                    if isinstance(body, dict) and _applies(key, node_name, fqn):
+                        _flatten("", body.get("ros__parameters") or {}, out)
+                continue
+            name, sep, text = arg.partition(":=")
+            if not sep:
+                raise ConfigError(f"-p {arg}: expected name:=value")
+            if ":" in name:  # node-specific form: node_name:param:=value
+                target, _, name = name.rpartition(":")
+                if not _applies(target, node_name, fqn):
+                    i += 1
+                    continue
+            try:
+                out[name] = yaml.safe_load(text) if text != "" else ""
+            except yaml.YAMLError:
+                out[name] = text
+        i += 1
+    return out
+
+
+def type_conflicts(requested: Mapping[str, Any], received: Mapping[str, Any]) -> list[str]:
+    """Names whose requested value has another type than the value rclpy holds (rcl kept an
+    earlier value of the other type), e.g. a ``-p`` string next to a params-file number."""
+    def kind(v: Any) -> str:
+        if isinstance(v, bool):
+            return "bool"
+        if isinstance(v, (int, float)):
+            return "number"
+        return type(v).__name__
+    return [f"parameter {k!r} is {requested[k]!r} ({kind(requested[k])}) on the command line "
+            f"but {received[k]!r} ({kind(received[k])}) in an earlier params file or -p"
+            for k in requested if k in received and kind(requested[k]) != kind(received[k])]

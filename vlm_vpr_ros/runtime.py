@@ -8,6 +8,11 @@ frame, starts the prior request (asynchronous, see :mod:`vlm_vpr_ros.priors.base
 descriptor meanwhile, waits for the prior at most ``prior_timeout_s``, localizes (flagged global
 retrieval when the prior failed) and hands a :class:`QueryOutcome` to ``on_outcome``. Nothing
 here queues more than one frame and one relocalization request.
+
+Time: ``min_period_s`` and frame ages (``max_frame_age_s``) are measured on the ``clock`` given
+to :class:`QueryRuntime` (the node passes its ROS clock, so they follow ``/clock`` under
+``use_sim_time``; default: ``time.monotonic``). A clock that jumps backwards (a bag replayed in
+a loop) restarts the period instead of stalling the queries.
 """
 
 from __future__ import annotations
@@ -96,10 +101,13 @@ class QueryRuntime:
     def __init__(self, pipeline: LocalizationPipeline, provider: PriorProvider,
                  config: RuntimeConfig, decode: Callable[[Any], np.ndarray],
                  on_outcome: Callable[[QueryOutcome], None],
-                 encoded: Callable[[Any], bytes | None] | None = None) -> None:
+                 encoded: Callable[[Any], bytes | None] | None = None,
+                 clock: Callable[[], float] = time.monotonic,
+                 stats: RuntimeStats | None = None) -> None:
         self.pipeline, self.provider, self.config = pipeline, provider, config
         self._decode, self._encoded, self._on_outcome = decode, encoded, on_outcome
-        self.stats = RuntimeStats(provider.name, config.mode)
+        self._clock = clock
+        self.stats = stats if stats is not None else RuntimeStats(provider.name, config.mode)
         self._cond = threading.Condition()
         self._slot: Frame | None = None
         self._last_used: Frame | None = None
@@ -114,6 +122,7 @@ class QueryRuntime:
     # -- called from ROS callbacks ---------------------------------------------------------------
     def on_frame(self, frame: Frame) -> None:
         """Store ``frame`` as the latest one (O(1); never decodes, never blocks on a query)."""
+        frame.received = self._clock()
         with self._cond:
             dropped = self._slot is not None
             self._slot = frame
@@ -157,7 +166,7 @@ class QueryRuntime:
     def start(self) -> None:
         self._thread.start()
 
-    def stop(self, timeout_s: float = 5.0) -> None:
+    def stop(self, timeout_s: float = 5.0, close_provider: bool = True) -> None:
         with self._cond:
             self._stop = True
             ticket, self._ticket = self._ticket, None
@@ -166,7 +175,8 @@ class QueryRuntime:
             ticket.finish(None)
         if self._thread.is_alive():
             self._thread.join(timeout_s)
-        self.provider.close()
+        if close_provider:
+            self.provider.close()
 
     # -- worker -----
     def _fresh(self, frame: Frame | None, now: float) -> bool:
@@ -176,7 +186,9 @@ class QueryRuntime:
         """Block until a query is due; None when stopping."""
         with self._cond:
             while not self._stop:
-                now = time.monotonic()
+                now = self._clock()
+                if now < self._last_start:  # the clock jumped back (bag loop, sim reset)
+                    self._last_start = -float("inf")
                 if self._ticket is not None:
                     frame = None
                     if self._fresh(self._slot, now):
@@ -196,7 +208,7 @@ class QueryRuntime:
                     if wait <= 0:
                         frame, self._slot = self._slot, None
                         return frame, None
-                    self._cond.wait(wait)
+                    self._cond.wait(min(wait, 0.1))  # the clock may be sim time
                     continue
                 self._cond.wait(0.5)
         return None
@@ -207,7 +219,7 @@ class QueryRuntime:
             if job is None:
                 return
             frame, ticket = job
-            self._last_start = time.monotonic()
+            self._last_start = self._clock()
             self.busy = True
             outcome = QueryOutcome(frame, "relocalize" if ticket else "continuous")
             try:
