@@ -12,13 +12,14 @@ LEVELS = ("OK", "WARN", "ERROR", "STALE")
 
 
 def format_value(value: Any) -> str:
-    """Readable text for a diagnostics value (floats rounded, None as empty)."""
+    """Text for a diagnostics value: floats in full precision (the shortest text that reads
+    back as the same float: a latitude keeps all its digits), None as empty."""
     if value is None:
         return ""
     if isinstance(value, bool):
         return "true" if value else "false"
     if isinstance(value, float):
-        return f"{value:.6g}" if math.isfinite(value) else str(value)
+        return repr(value) if math.isfinite(value) else str(value)
     return str(value)
 
 

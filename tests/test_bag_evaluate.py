@@ -190,3 +190,23 @@ def test_run_bag_demo(demo_map, demo_data, queries, tmp_path):
     for key in ("bag", "frames_csv", "world_map_png", "error_cdf_png", "estimates_bag"):
         assert Path(info[key]).exists(), key
     assert info["summary"]["n"] == len(_rows(Path(info["frames_csv"])))
+
+
+def test_frames_csv_stamps_are_exact(demo_data, queries, pipe, tmp_path):
+    """Stamps whose nanoseconds a float cannot hold (…712635803 became …712635994) are written
+    exactly, as ``sec.nanosec`` and integer ns, and join with the bag's own frames.csv."""
+    start = 1_795_391_409_712_635_803
+    assert int(start / 1e9 * 1e9) != start  # the old float path would change it
+    bag = tmp_path / "bag"
+    make_bag(demo_data / "images", queries, bag, rate_hz=3.0, start_time_ns=start,
+             progress=False)
+    evaluate_bag(open_bag(bag), pipe, create_prior_provider("none", {}), tmp_path / "ev",
+                 BagEvalConfig(max_frames=3), progress=False, plots=False)
+    rows = _rows(tmp_path / "ev" / "frames.csv")
+    made = {int(r["stamp_ns"]) for r in _rows(bag / "frames.csv")}
+    assert rows[0]["stamp"] == "1795391409.712635803"
+    assert rows[0]["stamp_ns"] == str(start)
+    for r in rows:
+        sec, nsec = r["stamp"].split(".")
+        assert int(sec) * 1_000_000_000 + int(nsec) == int(r["stamp_ns"])
+        assert int(r["stamp_ns"]) in made

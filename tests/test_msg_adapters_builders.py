@@ -80,8 +80,19 @@ def test_diagnostic_array():
     assert st.level == DiagnosticStatus.WARN and level_name(st.level) == "WARN"
     assert (st.name, st.hardware_id, st.message) == ("vlm_vpr_node: VPR", "vlm_vpr", "flagged")
     assert status_values(arr) == {"frames_received": "12", "prior_ok": "false",
-                                  "sigma_m": "1234.57", "last_error": ""}
+                                  "sigma_m": "1234.5678", "last_error": ""}
     assert status_values(arr, "other") == {}
     with pytest.raises(ConfigError, match="choices: OK, WARN, ERROR, STALE"):
         diagnostic_array(0, "n", "h", "BAD", "", {})
     assert level_name(2) == "ERROR" and format_value(math.nan) == "nan"
+
+
+def test_diagnostics_keep_coordinates_in_full_precision():
+    """A fix's lat/lon in /diagnostics read back as the same floats (not 6 significant
+    digits: -122.445 for -122.44512345678901 is 1 km off)."""
+    lat, lon = 37.77491234567891, -122.44512345678901
+    arr = diagnostic_array(0, "n", "h", "OK", "", {"last_lat": lat, "last_lon": lon,
+                                                     "query_ms": 12.35})
+    values = status_values(arr)
+    assert float(values["last_lat"]) == lat and float(values["last_lon"]) == lon
+    assert values["last_lon"] == "-122.445123456789" and values["query_ms"] == "12.35"

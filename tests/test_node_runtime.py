@@ -118,6 +118,51 @@ def test_fix_near_truth_with_fixed_prior(pipeline, image):
     assert level == "OK" and "prior fixed" in message and values["candidates"] >= 1
     ok, text = outcome_summary(out, 0.0)
     assert ok and "lat 39.559" in text and "prior fixed" in text
+    # a continuous-mode fix is not a relocalization: the log line says what it is
+    assert text.startswith("fix for frame 42.000000007:") and "relocalized" not in text
+    out.trigger = "relocalize"
+    assert outcome_summary(out, 0.0)[1].startswith("relocalized frame 42.000000007:")
+
+
+class FakeClock:
+    """A manual clock (seconds), like a node's clock under use_sim_time."""
+
+    def __init__(self, t: float = 100.0):
+        self.t = t
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def test_min_period_and_frame_age_follow_the_given_clock(pipeline, image):
+    """min_period_s counts on the runtime's clock (the node passes its ROS clock, so sim time
+    applies), not on wall time; a clock that jumps back does not stall the queries."""
+    clock = FakeClock()
+    col = Collector()
+    rt = QueryRuntime(pipeline, create_prior_provider("none", {}),
+                      RuntimeConfig(min_period_s=10.0, max_frame_age_s=5.0),
+                      decode=message_to_rgb, on_outcome=col, clock=clock)
+    rt.start()
+    try:
+        rt.on_frame(frame_of(msg_of(image), 1))
+        col.wait(1)  # the first query starts at once
+        assert rt._last_start == 100.0
+        rt.on_frame(frame_of(msg_of(image), 2))
+        time.sleep(0.6)  # wall time passes, the clock does not: no second query
+        assert len(col.outcomes) == 1
+        clock.t = 109.0
+        time.sleep(0.4)
+        assert len(col.outcomes) == 1
+        clock.t = 110.5  # 10 s of clock time since the first start
+        assert col.wait(2).frame.stamp_ns == 2
+        rt.on_frame(frame_of(msg_of(image), 3))
+        clock.t = 50.0  # a looped bag: time jumps back; the period restarts at once
+        assert col.wait(3).frame.stamp_ns == 3
+        # frame age on the clock: a frame received at t=50 is stale at t=56 for relocalize
+        rt.on_frame(frame_of(msg_of(image), 4))
+        assert rt._slot is not None and rt._slot.received == 50.0
+    finally:
+        rt.stop()
 
 
 def test_slow_prior_does_not_block_intake(pipeline, image):

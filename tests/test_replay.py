@@ -146,3 +146,64 @@ def test_parse_remaps():
     assert parse_remaps(["/a:=/b", "/c:=/d/e"]) == {"/a": "/b", "/c": "/d/e"}
     with pytest.raises(ConfigError, match="FROM:=TO"):
         parse_remaps(["/a=/b"])
+
+
+CLOCK_PROBE = r"""
+import json, sys, time
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import NavSatFix
+
+out, expected, deadline_s = sys.argv[1], int(sys.argv[2]), float(sys.argv[3])
+ctx = Context()
+rclpy.init(context=ctx)
+node = Node("clock_probe", context=ctx)
+clocks, fixes = [], []
+ns = lambda t: t.sec * 1_000_000_000 + t.nanosec
+node.create_subscription(Clock, "/clock", lambda m: clocks.append(ns(m.clock)),
+                         QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT))
+node.create_subscription(NavSatFix, "/gps/fix", lambda m: fixes.append(ns(m.header.stamp)),
+                         QoSProfile(depth=100))
+ex = SingleThreadedExecutor(context=ctx)
+ex.add_node(node)
+end = time.monotonic() + deadline_s
+while len(fixes) < expected and time.monotonic() < end:
+    ex.spin_once(timeout_sec=0.05)
+t = time.monotonic() + 0.3
+while time.monotonic() < t:
+    ex.spin_once(timeout_sec=0.05)
+json.dump({"clocks": clocks, "fixes": fixes}, open(out, "w"))
+node.destroy_node()
+ctx.try_shutdown()
+"""
+
+
+def test_replay_clock_publishes_the_bag_time(small_bag, tmp_path):
+    """--clock: /clock carries the bag's log time (from its first stamp, never past the last
+    message + linger, non-decreasing) at about the requested rate."""
+    out = tmp_path / "clock.json"
+    sub = subprocess.Popen([sys.executable, "-c", CLOCK_PROBE, str(out), str(FRAMES), "40"],
+                           env=_env())
+    try:
+        rep = subprocess.run(
+            [sys.executable, "-m", "vlm_vpr_ros.cli", "replay", str(small_bag), "--clock", "50",
+             "--topics", "/gps/fix", "--wait-subscribers", "30"],
+            env=_env(), capture_output=True, text=True, timeout=90)
+        sub.wait(timeout=60)
+    finally:
+        if sub.poll() is None:
+            sub.kill()
+    assert rep.returncode == 0, rep.stderr
+    got = json.loads(out.read_text())
+    stamps = [m.log_time_ns for m in open_bag(small_bag).messages(["/gps/fix"])]
+    assert got["fixes"] == stamps
+    clocks = got["clocks"]
+    span_s = (stamps[-1] - stamps[0]) / 1e9  # 1.75 s of bag time at rate 1
+    assert len(clocks) >= 0.5 * 50 * span_s, len(clocks)
+    assert clocks == sorted(clocks)
+    assert clocks[0] >= stamps[0] and clocks[-1] <= stamps[-1] + int(0.6e9)
+    assert set(stamps) <= set(clocks)  # announced right before each message

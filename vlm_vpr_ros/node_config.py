@@ -60,7 +60,8 @@ class NodeConfig:
                                      "settings under prior.*")
     prior_timeout_s: float = _p(30.0, "longest wait for a prior; then a flagged global fix",
                               0.001, 3600.0)
-    top_p: int = _p(50, "references retrieved before the re-rank by distance to the prior", 1, 100000)
+    top_p: int = _p(50, "references retrieved before the re-rank by distance to the prior",
+                    1, 100000)
     use_submaps: bool = _p(True, "search only the submap(s) nearest to the prior")
     rerank: bool = _p(True, "re-rank the top-p references by haversine distance to the prior")
     n_submaps: int = _p(1, "number of submaps searched around the prior", 1, 100000)

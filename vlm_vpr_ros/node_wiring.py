@@ -253,9 +253,7 @@ class _Wiring:
         if hyp is not None:
             frame_id = self.cfg.frame_id or out.frame.frame_id
             self.fix_pub.publish(navsat_fix(hyp, out.frame.stamp_ns, frame_id, self.policy))
-            summary = outcome_summary(out, 0.0)[1]
-            if out.trigger != "relocalize":  # "relocalized ..." is the service's answer
-                summary = "fix for frame" + summary.removeprefix("relocalized frame")
+            summary = outcome_summary(out, 0.0)[1]  # "fix for frame ..." in continuous mode
             if hyp.flagged and self._flag_log.ready():
                 self.get_logger().warning(summary)
             elif out.trigger == "relocalize":

@@ -324,6 +324,7 @@ def outcome_summary(outcome: QueryOutcome | None, waited_s: float) -> tuple[bool
         prior = f"no prior ({pr.reason if pr else 'none'}): global retrieval"
     flag = f" FLAGGED [{'|'.join(h.flags)}]" if h.flagged else ""
     took = outcome.finished - outcome.started
-    return True, (f"relocalized frame {frame.key}: lat {h.lat:.6f}, lon {h.lon:.6f}, "
+    what = "relocalized frame" if outcome.trigger == "relocalize" else "fix for frame"
+    return True, (f"{what} {frame.key}: lat {h.lat:.6f}, lon {h.lon:.6f}, "
                   f"sigma {h.uncertainty_m:.0f} m, reference {h.ref_id}, submap {h.submap}, "
                   f"{prior}, {len(h.candidates)} candidates, {took:.2f} s{flag}")

@@ -28,9 +28,10 @@ from vlm_vpr_ros.priors.base import PriorProvider, PriorQuery, wait_prior
 
 log = logging.getLogger(__name__)
 
-FRAME_FIELDS = ["index", "stamp", "key", "gt_lat", "gt_lon", "gt_gap_s", "lat", "lon",
-                "error_km", "prior_lat", "prior_lon", "prior_source", "prior_reason", "submap",
-                "ref_id", "uncertainty_m", "n_candidates", "flags", "descriptor_ms",
+#: ``stamp`` is ``sec.nanosec`` and ``stamp_ns`` the integer nanoseconds: both exact, to join on
+FRAME_FIELDS = ["index", "stamp", "stamp_ns", "key", "gt_lat", "gt_lon", "gt_gap_s", "lat",
+                "lon", "error_km", "prior_lat", "prior_lon", "prior_source", "prior_reason",
+                "submap", "ref_id", "uncertainty_m", "n_candidates", "flags", "descriptor_ms",
                 "retrieval_ms", "rerank_ms", "prior_latency_s"]
 EST_TOPIC, PRIOR_TOPIC, GT_TOPIC = "/vlm_vpr/fix", "/vlm_vpr/prior", "/vlm_vpr/ground_truth"
 FRAME_ID = "vlm_vpr"
@@ -44,6 +45,12 @@ class BagEvalConfig:
     max_frames: int | None = None
     prior_timeout_s: float = 60.0
     window: int = 4  # prior requests in flight ahead of the descriptor work
+
+
+def stamp_text(stamp_ns: int) -> str:
+    """``sec.nanosec`` (9 digits) of an integer stamp, exact (never through a float)."""
+    sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
+    return f"{sec}.{nsec:09d}"
 
 
 def _pair(gt: GroundTruth, t_ns: int, max_gap_s: float) -> tuple[int | None, float | None]:
@@ -129,7 +136,8 @@ def _localize_frame(frame: Frame, fut: Any, pipeline: Any, provider: PriorProvid
                     gt: GroundTruth, cfg: BagEvalConfig, errors: list[str]) -> tuple[dict, tuple]:
     gi, gap = _pair(gt, frame.stamp_ns, cfg.max_gt_gap_s)
     row = {k: "" for k in FRAME_FIELDS}
-    row.update({"index": frame.index, "stamp": f"{frame.stamp_ns / 1e9:.9f}", "key": frame.key,
+    row.update({"index": frame.index, "stamp": stamp_text(frame.stamp_ns),
+                "stamp_ns": int(frame.stamp_ns), "key": frame.key,
                 "gt_gap_s": "" if gap is None else f"{gap:.3f}"})
     truth = None
     if gi is not None:

@@ -34,8 +34,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="image topic is NS/image_raw[/compressed] (default /camera)")
     m.add_argument("--gt-topic", default="/gps/fix", metavar="TOPIC")
     m.add_argument("--frame-id", default="camera", metavar="ID")
-    m.add_argument("--start-time", type=float, default=None, metavar="SEC",
-                   help="stamp of the first frame, seconds since the epoch (default: now)")
+    m.add_argument("--start-time", default=None, metavar="SEC[.NANOSEC]",
+                   help="stamp of the first frame, seconds since the epoch, read exactly (up "
+                        "to 9 decimals; default: now)")
     m.add_argument("--mcap-compression", choices=["none", "zstd", "lz4"], default="none",
                    help="MCAP chunk compression (default none)")
     m.add_argument("--overwrite", action="store_true")
@@ -57,6 +58,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="wait up to S seconds for a subscriber on every topic (default 5)")
     r.add_argument("--domain-id", type=int, default=None, metavar="N",
                    help="ROS domain (default: ROS_DOMAIN_ID)")
+    r.add_argument("--clock", nargs="?", type=float, const=100.0, default=None, metavar="HZ",
+                   help="publish /clock (rosgraph_msgs/Clock) from the bag's log times at HZ "
+                        "(default 100) for nodes with use_sim_time")
     r.set_defaults(func=cmd_replay)
 
     e = sub.add_parser("evaluate-bag", help="localize a bag's frames offline and score them",
@@ -108,10 +112,28 @@ def _frame_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-frames", type=int, default=None, metavar="N")
 
 
+def parse_stamp(text: str, what: str) -> int:
+    """``SEC`` or ``SEC.FRACTION`` (≤ 9 digits) → integer ns, exactly (no float on the way)."""
+    import decimal
+
+    from vlm_vpr_ros.errors import ConfigError
+
+    try:
+        value = decimal.Decimal(str(text).strip())
+    except decimal.InvalidOperation:
+        raise ConfigError(f"{what}: expected seconds such as 1700000000.5, got {text!r}") \
+            from None
+    ns = value * 1_000_000_000
+    if not value.is_finite() or value < 0 or ns != ns.to_integral_value():
+        raise ConfigError(f"{what}: expected non-negative seconds with at most 9 decimals, "
+                          f"got {text!r}")
+    return int(ns)
+
+
 def cmd_bag_make(args: argparse.Namespace) -> int:
     from vlm_vpr_ros.bags.make import make_bag
 
-    start = None if args.start_time is None else int(round(args.start_time * 1e9))
+    start = None if args.start_time is None else parse_stamp(args.start_time, "--start-time")
     info = make_bag(args.images, args.coords, args.out, rate_hz=args.rate,
                     compressed=args.compressed, topic_prefix=args.topic_prefix,
                     gt_topic=args.gt_topic, frame_id=args.frame_id, start_time_ns=start,
@@ -149,7 +171,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     bag = open_bag(args.bag)
     cfg = ReplayConfig(rate=args.rate, loop=args.loop, topics=args.topics,
                        remap=parse_remaps(args.remap), wait_subscribers_s=args.wait_subscribers,
-                       domain_id=args.domain_id)
+                       domain_id=args.domain_id, clock_hz=args.clock)
     bar = tqdm(desc="replay", unit="msg", disable=None, leave=False)
 
     def progress(done: int, total: int, t: float) -> None:
