@@ -213,3 +213,38 @@ def test_unreadable_params_file_is_one_fatal_line(tmp_path):
     assert proc.returncode == 2 and "invalid YAML" in proc.stderr, proc.stderr
     assert "Traceback" not in proc.stderr
     assert os.path.basename(str(bad)) in proc.stderr
+
+
+def test_min_period_runs_on_sim_time(demo_map, tmp_path, rgb):
+    """use_sim_time: min_period_s counts /clock seconds. With min_period_s 20 and /clock running
+    20x faster than wall time, fixes come about once per wall second (on wall time there would
+    be one per 20 s)."""
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from rosgraph_msgs.msg import Clock
+
+    dom = domain_id()
+    params = {"map_dir": str(demo_map), "use_sim_time": True, "min_period_s": 20.0,
+              "qos": "reliable"}
+    with NodeProcess(params, tmp_path / "node.log", dom) as node, GraphClient(dom) as client:
+        clock_pub = client.node.create_publisher(Clock, "/clock", QoSProfile(
+            depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
+        assert client.wait_subscribed(30.0), node.log()
+        sim = {"t": 1_000 * 10**9, "wall": time.monotonic()}
+
+        def tick():
+            now = time.monotonic()
+            sim["t"] += int((now - sim["wall"]) * 20 * 1e9)  # 20x real time
+            sim["wall"] = now
+            msg = Clock()
+            msg.clock.sec, msg.clock.nanosec = divmod(sim["t"], 10**9)
+            clock_pub.publish(msg)
+            client.image_pub.publish(image_msg(rgb, sim["t"]))
+        client.wait_for(lambda: client.fixes, 20.0, tick=tick, period_s=0.05)
+        assert client.fixes, node.log()
+        t0, n0 = time.monotonic(), len(client.fixes)
+        client.wait_for(lambda: len(client.fixes) >= n0 + 3, 8.0, tick=tick, period_s=0.05)
+        took = time.monotonic() - t0
+        assert len(client.fixes) >= n0 + 3, f"{len(client.fixes) - n0} fixes in {took:.1f} s"
+        stamps = [m.header.stamp.sec for m, _ in client.fixes]
+        gaps = [b - a for a, b in zip(stamps, stamps[1:])]
+        assert min(gaps) >= 19, gaps  # never closer than min_period_s on the sim clock
