@@ -249,3 +249,25 @@ def test_min_period_runs_on_sim_time(demo_map, tmp_path, rgb):
         stamps = [m.header.stamp.sec for m, _ in client.fixes[n0:]]
         gaps = [b - a for a, b in zip(stamps, stamps[1:])]
         assert min(gaps) >= 19, gaps  # never closer than min_period_s on the sim clock
+
+
+def test_lifecycle_configure_fails_cleanly_on_a_bad_map(tmp_path):
+    """A folder without a valid map: configure fails (the node stays unconfigured, says why,
+    keeps running), as a lifecycle manager expects, instead of crashing."""
+    from lifecycle_msgs.msg import Transition
+    from lifecycle_msgs.srv import ChangeState, GetState
+
+    empty = tmp_path / "not_a_map"
+    empty.mkdir()
+    dom = domain_id()
+    with NodeProcess({"map_dir": str(empty)}, tmp_path / "node.log", dom,
+                     lifecycle=True) as node, GraphClient(dom) as client:
+        _wait_node_service(client, "/vlm_vpr_node/change_state")
+        r = client.call(ChangeState, "/vlm_vpr_node/change_state",
+                        ChangeState.Request(transition=Transition(
+                            id=Transition.TRANSITION_CONFIGURE)), 30.0)
+        assert r is not None and not r.success, node.log()
+        state = client.call(GetState, "/vlm_vpr_node/get_state", GetState.Request())
+        assert state.current_state.label == "unconfigured"
+        assert "configure failed" in node.log() and "Traceback" not in node.log()
+        assert node.alive()
