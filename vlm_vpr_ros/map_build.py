@@ -64,18 +64,24 @@ def _fingerprint(rows, descriptor: GlobalDescriptor, partition: str, clusters: i
 def assemble_map(desc: np.ndarray, coords: np.ndarray, ids: list[str], identity: dict,
                  state: Mapping[str, np.ndarray], partition: str, clusters: int = 100,
                  seed: int = 0, extra: Mapping[str, Any] | None = None,
-                 index: str = "flat") -> ReferenceMap:
+                 index: str = "flat", engine: Any = None) -> ReferenceMap:
     """Partition references and build one exact L2 index per submap (in memory).
-    ``index``: "flat" (float32) or "fp16" (half the memory and scan time, fp16-rounded)."""
-    part = make_partition(partition, coords[:, 0], coords[:, 1], clusters, seed)
-    submaps = []
-    for k, name in enumerate(part.names):
-        sel = np.flatnonzero(part.labels == k)
-        faiss_index = new_index(index, desc.shape[1])
-        faiss_index.add(np.ascontiguousarray(desc[sel], dtype=np.float32))
-        submaps.append(Submap(name, tuple(float(c) for c in part.centroids[k]),
-                              coords[sel].astype(np.float64), [ids[i] for i in sel],
-                              faiss_index))
+    ``index``: "flat" (float32) or "fp16" (half the memory and scan time, fp16-rounded).
+    ``engine``: run the partition and the index builds elsewhere (``partition(...)``,
+    ``build_indexes(kind, dim, parts)``; the Ray engine runs them as tasks)."""
+    part = (engine.partition if engine is not None else make_partition)(
+        partition, coords[:, 0], coords[:, 1], clusters, seed)
+    sels = [np.flatnonzero(part.labels == k) for k in range(len(part.names))]
+    if engine is not None:
+        indexes = engine.build_indexes(index, desc.shape[1], [desc[sel] for sel in sels])
+    else:
+        indexes = []
+        for sel in sels:
+            indexes.append(new_index(index, desc.shape[1]))
+            indexes[-1].add(np.ascontiguousarray(desc[sel], dtype=np.float32))
+    submaps = [Submap(name, tuple(float(c) for c in part.centroids[k]),
+                      coords[sels[k]].astype(np.float64), [ids[i] for i in sels[k]], indexes[k])
+               for k, name in enumerate(part.names)]
     manifest = {"descriptor": identity, "index": index,
                 "partition": {"method": part.method, "params": part.params},
                 "source": dict(extra or {})}
@@ -107,9 +113,14 @@ def _images(root: Path, rows, idx) -> Iterator[tuple[int, np.ndarray | None]]:
 def build_map(images_dir: str | Path, coords_csv: str | Path, out_dir: str | Path,
               descriptor: str = "vlad_rootsift", descriptor_config: Mapping | None = None,
               partition: str = "kmeans", clusters: int = 100, overwrite: bool = False,
-              progress: bool = True, seed: int = 0, index: str = "flat") -> ReferenceMap:
-    """Build (or resume building) a map folder; see the README "Map format" section."""
-    images_dir, out_dir = Path(images_dir), Path(out_dir)
+              progress: bool = True, seed: int = 0, index: str = "flat",
+              engine: Any = None) -> ReferenceMap:
+    """Build (or resume building) a map folder; see the README "Map format" section.
+    ``engine``: describe (and fit), partition and index elsewhere, e.g. on Ray
+    (``vlm_vpr_ros.distributed.build``); by default everything runs in this process."""
+    out_dir = Path(out_dir)
+    if engine is None:  # an engine may read a URI (s3://, gs://, file://): keep it a string
+        images_dir = Path(images_dir)
     rows = read_coords_csv(coords_csv)
     desc = create_descriptor(descriptor, descriptor_config)
     new_index(index, 8)  # validate the name before any work
@@ -137,10 +148,13 @@ def build_map(images_dir: str | Path, coords_csv: str | Path, out_dir: str | Pat
         work.mkdir(parents=True)
     atomic_write_json(job, {"fingerprint": fp, "n": len(rows)})
     t0 = time.monotonic()
-    if desc.needs_fit:
-        _fit(desc, images_dir, rows, work, progress)
+    if engine is not None:
+        feats, ok = engine.describe(desc, images_dir, rows, work, progress)
+    else:
+        if desc.needs_fit:
+            _fit(desc, images_dir, rows, work, progress)
+        feats, ok = _extract(desc, images_dir, rows, work, progress)
     identity = desc.identity()
-    feats, ok = _extract(desc, images_dir, rows, work, progress)
     skipped = [rows[i][0] for i in range(len(rows)) if not ok[i]]
     keep = np.flatnonzero(ok)
     if len(keep) == 0:
@@ -149,13 +163,21 @@ def build_map(images_dir: str | Path, coords_csv: str | Path, out_dir: str | Pat
     ids = [rows[i][0] for i in keep]
     ref_map = assemble_map(feats[keep], coords, ids, identity, desc.state_arrays(), partition,
                            clusters, seed, extra={"fingerprint": fp, "rows": len(rows),
-                                                  "skipped": skipped}, index=index)
+                                                  "skipped": skipped}, index=index,
+                           engine=engine)
     ref_map.save(out_dir)
     shutil.rmtree(work, ignore_errors=True)
     dt = time.monotonic() - t0
     log.info("built map %s: %d references (%d skipped), %d submaps, %.1f s (%.1f img/s)",
              out_dir, len(keep), len(skipped), len(ref_map.submaps), dt, len(rows) / dt)
     return ref_map
+
+
+def fit_sample_indices(n: int, desc: GlobalDescriptor) -> np.ndarray:
+    """Rows a stateful descriptor is fitted on: ``fit_max_images`` evenly spread rows (the
+    same for every engine, so local and distributed builds learn the same state)."""
+    limit = int(desc.config.get("fit_max_images", 2000))
+    return np.unique(np.linspace(0, n - 1, min(limit, n)).astype(int))
 
 
 def _fit(desc: GlobalDescriptor, root: Path, rows, work: Path, progress: bool) -> None:
@@ -165,8 +187,7 @@ def _fit(desc: GlobalDescriptor, root: Path, rows, work: Path, progress: bool) -
             desc.load_state({k: npz[k] for k in npz.files})
         log.info("resumed fitted descriptor state")
         return
-    limit = int(desc.config.get("fit_max_images", 2000))
-    idx = np.unique(np.linspace(0, len(rows) - 1, min(limit, len(rows))).astype(int))
+    idx = fit_sample_indices(len(rows), desc)
     images = (im for _, im in _progress(_images(root, rows, idx), len(idx), "fit", progress)
               if im is not None)
     desc.fit(images, progress=progress)

@@ -10,6 +10,7 @@ import sys
 from vlm_vpr_ros.cli.common import (add_descriptor_option_args, add_localizer_args,
                                     add_prior_args, descriptor_options, localizer_config,
                                     make_prior_provider, write_csv_atomic)
+from vlm_vpr_ros.cli.distributed import add_engine_args, cmd_build_map_ray, engine_options
 
 log = logging.getLogger(__name__)
 
@@ -37,6 +38,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "(descriptors rounded to float16)")
     p.add_argument("--overwrite", action="store_true", help="replace a different existing map")
     add_descriptor_option_args(p)
+    add_engine_args(p)
     p.set_defaults(func=cmd_build_map)
 
     p = sub.add_parser("localize", help="localize query images against a map",
@@ -112,7 +114,10 @@ def cmd_build_map(args: argparse.Namespace) -> int:
     check_source_args(args)
     if args.bag:
         from vlm_vpr_ros.bags.teach import build_map_from_bag
+        from vlm_vpr_ros.errors import ConfigError
 
+        if args.engine != "local":
+            raise ConfigError("--engine ray builds from --images/--coords, not from --bag")
         m, res = build_map_from_bag(
             args.bag, args.out, teach_config(args), overwrite=args.overwrite,
             descriptor=args.descriptor, descriptor_config=descriptor_options(args),
@@ -122,9 +127,13 @@ def cmd_build_map(args: argparse.Namespace) -> int:
               f"({m.partition_method}), descriptor {m.descriptor_identity['name']} "
               f"{m.dim}-D, images stored in the map")
         return 0
-    m = build_map(args.images, args.coords, args.out, descriptor=args.descriptor,
-                  descriptor_config=descriptor_options(args), partition=args.partition,
-                  clusters=args.clusters, overwrite=args.overwrite, index=args.index)
+    if args.engine == "ray":
+        m = cmd_build_map_ray(args)
+    else:
+        engine_options(args)  # Ray-only options without --engine ray are errors
+        m = build_map(args.images, args.coords, args.out, descriptor=args.descriptor,
+                      descriptor_config=descriptor_options(args), partition=args.partition,
+                      clusters=args.clusters, overwrite=args.overwrite, index=args.index)
     print(f"map {args.out}: {m.n_references} references, {len(m.submaps)} submaps "
           f"({m.partition_method}), descriptor {m.descriptor_identity['name']} "
           f"{m.dim}-D")

@@ -1,0 +1,315 @@
+"""``vlm-vpr describe``: reference images → descriptor shards, with the local or the Ray engine.
+
+The job is the same for both engines (only *where* images are described differs):
+
+1. the images folder/URI and the CSV's ids are checked; the shard folder is opened (resumed
+   when it holds the same job, see :mod:`~vlm_vpr_ros.distributed.shards`);
+2. a stateful descriptor (``vlad_rootsift``) is fitted ONCE on the same sample as the local
+   ``build-map`` (:func:`vlm_vpr_ros.map_build.fit_sample_indices`) and its state is saved, then
+   sent to every worker;
+3. the images of unfinished shards are described in batches; a shard is written as soon as all
+   its rows are back, so a killed run loses at most the shards in flight;
+4. ``describe.json`` is written last.
+
+Unreadable images, and images on which the descriptor raises, are skipped and listed with the
+reason (in the shard records and ``describe.json``), never the whole job.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterator, Mapping, Protocol, Sequence
+
+import numpy as np
+
+from vlm_vpr_ros.descriptors import GlobalDescriptor, create_descriptor
+from vlm_vpr_ros.distributed.shards import (DEFAULT_SHARD_SIZE, ShardStore, job_fingerprint,
+                                            plan_shards)
+from vlm_vpr_ros.distributed.sources import ImageSource
+from vlm_vpr_ros.errors import ConfigError, DescriptorError, ImageDecodeError
+
+log = logging.getLogger(__name__)
+
+#: one described batch: row indices, ok flags, (k, dim) descriptors, reasons ("" when ok)
+BatchResult = tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]
+
+
+@dataclass
+class DescribeOptions:
+    """How to run a describe job (the CLI's engine options)."""
+
+    engine: str = "local"
+    #: None: start a Ray on this machine; "auto", "HOST:PORT" or "ray://HOST:PORT": join one
+    ray_address: str | None = None
+    #: actors (Ray) describing in parallel; None: one per CPU (or per GPU share) of the cluster
+    workers: int | None = None
+    #: images per batch handed to a worker (and per forward pass of a deep model on GPU)
+    batch_size: int = 16
+    num_gpus_per_worker: float = 0.0
+    num_cpus_per_worker: float = 1.0
+    shard_size: int = DEFAULT_SHARD_SIZE
+    progress: bool = True
+    #: extra ``ray.init`` arguments for a Ray started here (e.g. object_store_memory)
+    ray_init: dict[str, Any] = field(default_factory=dict)
+
+    def validate(self) -> None:
+        from vlm_vpr_ros.distributed import ENGINES
+
+        if self.engine not in ENGINES:
+            raise ConfigError(f"unknown engine {self.engine!r}; choices: {', '.join(ENGINES)}")
+        if self.workers is not None and self.workers < 1:
+            raise ConfigError(f"--workers must be >= 1, got {self.workers}")
+        if not 1 <= self.batch_size <= 4096:
+            raise ConfigError(f"--batch-size must be 1..4096, got {self.batch_size}")
+        if self.num_gpus_per_worker < 0 or self.num_cpus_per_worker <= 0:
+            raise ConfigError("--num-gpus-per-worker must be >= 0 and CPUs per worker > 0")
+        if self.shard_size < 1:
+            raise ConfigError(f"--shard-size must be >= 1, got {self.shard_size}")
+        if self.engine == "local" and (self.ray_address or self.num_gpus_per_worker):
+            raise ConfigError("--ray-address and --num-gpus-per-worker need --engine ray")
+
+
+@dataclass
+class DescribeResult:
+    folder: Path
+    rows: int
+    described: int
+    skipped: list[dict]
+    resumed_shards: int
+    computed_images: int
+    seconds: float
+    workers: int
+    engine: str
+    identity: dict
+
+    @property
+    def images_per_s(self) -> float:
+        return self.computed_images / self.seconds if self.seconds > 0 else 0.0
+
+    def summary(self) -> str:
+        return (f"described {self.described}/{self.rows} images -> {self.folder} "
+                f"({len(self.skipped)} skipped, {self.resumed_shards} shards resumed): "
+                f"{self.computed_images} images in {self.seconds:.1f} s = "
+                f"{self.images_per_s:.2f} img/s with {self.workers} {self.engine} worker(s)")
+
+
+class Engine(Protocol):
+    """Where the images are described (in this process, or on a Ray cluster)."""
+
+    workers: int
+
+    def fit(self, name: str, config: Mapping[str, Any], sample_ids: list[str]
+            ) -> dict[str, np.ndarray]: ...
+
+    def map(self, items: list[tuple[int, str]], name: str, config: Mapping[str, Any],
+            state: Mapping[str, np.ndarray], identity: Mapping[str, Any]
+            ) -> Iterator[BatchResult]: ...
+
+    def close(self) -> None: ...
+
+
+# -- the work itself (runs in this process or inside a Ray worker) -------------------------------
+def fit_on_sample(desc: GlobalDescriptor, source: ImageSource, sample_ids: Sequence[str],
+                  progress: bool = False) -> dict[str, np.ndarray]:
+    """Fit ``desc`` on the images of ``sample_ids`` (unreadable ones skipped, as the local
+    build does) and return its state arrays."""
+
+    def images() -> Iterator[np.ndarray]:
+        for ref in sample_ids:
+            try:
+                yield source.load(ref)
+            except ImageDecodeError as exc:
+                log.warning("skipping reference: %s", exc)
+
+    desc.fit(images(), progress=progress)
+    return desc.state_arrays()
+
+
+def describe_items(desc: GlobalDescriptor, source: ImageSource,
+                   items: Sequence[tuple[int, str]]) -> BatchResult:
+    """Describe one batch. Unreadable images and images on which the descriptor raises are
+    returned as not ok with the reason; the rest of the batch is kept."""
+    idx = np.array([i for i, _ in items], dtype=np.int64)
+    ok = np.zeros(len(items), bool)
+    feats = np.zeros((len(items), desc.dim), np.float32)
+    reasons = [""] * len(items)
+    images, where = [], []
+    for k, (_, ref) in enumerate(items):
+        try:
+            images.append(source.load(ref))
+            where.append(k)
+        except ImageDecodeError as exc:
+            log.warning("skipping reference: %s", exc)
+            reasons[k] = str(exc)
+    if images:
+        try:
+            feats[where] = desc.describe(images)
+            ok[where] = True
+        # A descriptor may fail on one odd image with any exception type (a library bug, a
+        # shape it does not expect): describe one by one so only that image is lost.
+        except Exception as exc:  # noqa: BLE001
+            log.warning("batch failed (%s: %s); describing its images one by one",
+                        type(exc).__name__, exc)
+            for k, im in zip(where, images):
+                try:
+                    feats[k] = desc.describe([im])[0]
+                    ok[k] = True
+                except Exception as one:  # noqa: BLE001
+                    reasons[k] = f"descriptor failed on {source.uri(items[k][1])}: " \
+                                 f"{type(one).__name__}: {one}"
+                    log.warning("skipping reference: %s", reasons[k])
+    return idx, ok, feats, reasons
+
+
+class LocalEngine:
+    """Describes in this process with the driver's descriptor (no Ray needed)."""
+
+    workers = 1
+
+    def __init__(self, desc: GlobalDescriptor, source: ImageSource, batch_size: int) -> None:
+        self.desc, self.source, self.batch_size = desc, source, batch_size
+
+    def fit(self, name, config, sample_ids):
+        return fit_on_sample(self.desc, self.source, sample_ids, progress=False)
+
+    def map(self, items, name, config, state, identity):
+        for s in range(0, len(items), self.batch_size):
+            yield describe_items(self.desc, self.source, items[s:s + self.batch_size])
+
+    def close(self) -> None:
+        pass
+
+
+# -- the job --------------------------------------------------------------------------------------
+def describe_to_shards(images: str | Path, ids: Sequence[str], out: str | Path,
+                       descriptor: str | GlobalDescriptor = "vlad_rootsift",
+                       descriptor_config: Mapping[str, Any] | None = None,
+                       options: DescribeOptions | None = None, overwrite: bool = False,
+                       engine: Engine | None = None) -> DescribeResult:
+    """Describe ``images/<id>`` for every id into the shard folder ``out`` (resumable).
+
+    ``descriptor`` may be an already created descriptor (it is fitted in place when it needs
+    it). ``engine``: an open engine (``build-map --engine ray`` passes its Ray session);
+    by default one is made from ``options``.
+    """
+    from vlm_vpr_ros.map_build import fit_sample_indices
+
+    opts = options or DescribeOptions()
+    opts.validate()
+    t_start = time.monotonic()
+    desc = descriptor if isinstance(descriptor, GlobalDescriptor) \
+        else create_descriptor(descriptor, descriptor_config)
+    source = ImageSource(images)
+    source.check()
+    ids = list(ids)
+    if not ids:
+        raise ConfigError("no reference ids to describe")
+    store = ShardStore(out)
+    store.open(job_fingerprint(ids, desc.identity(), opts.shard_size), len(ids),
+               opts.shard_size, overwrite)
+    own_engine = engine is None
+    if engine is None:
+        engine = make_engine(opts, desc, source)
+    try:
+        state: dict[str, np.ndarray] = {}
+        if desc.needs_fit:
+            saved = store.load_state()
+            if saved is None:
+                sample = [ids[i] for i in fit_sample_indices(len(ids), desc)]
+                log.info("fitting %s on %d sample images", desc.name, len(sample))
+                saved = engine.fit(desc.name, desc.config, sample)
+                store.save_state(saved)
+            else:
+                log.info("resumed the fitted %s state", desc.name)
+            desc.load_state(saved)
+            state = desc.state_arrays()
+        identity = desc.identity()
+        plan = plan_shards(len(ids), opts.shard_size)
+        done = store.done()
+        pending = [(s, e) for s, e in plan if s not in done]
+        computed = _run(engine, store, ids, pending, desc, state, identity, opts,
+                        n_done=sum(e - s for s, e in plan if s in done))
+        meta = store.finish(identity, desc.needs_fit, len(ids))
+    finally:
+        if own_engine:
+            engine.close()
+    res = DescribeResult(Path(out), len(ids), meta["described"], meta["skipped"],
+                         len(plan) - len(pending), computed, time.monotonic() - t_start,
+                         engine.workers, opts.engine, identity)
+    log.info("%s", res.summary())
+    return res
+
+
+def _run(engine: Engine, store: ShardStore, ids: Sequence[str],
+         pending: list[tuple[int, int]], desc: GlobalDescriptor, state, identity,
+         opts: DescribeOptions, n_done: int) -> int:
+    """Describe the rows of the pending shards; write each shard when its rows are all back."""
+    if not pending:
+        return 0
+    size, dim = opts.shard_size, desc.dim
+    items = [(i, ids[i]) for s, e in pending for i in range(s, e)]
+    buf: dict[int, dict] = {s: {"end": e, "feats": np.zeros((e - s, dim), np.float32),
+                                "ok": np.zeros(e - s, bool), "seen": np.zeros(e - s, bool),
+                                "reasons": [""] * (e - s), "left": e - s} for s, e in pending}
+    bar = _bar(len(ids), n_done, opts.progress)
+    t0, computed = time.monotonic(), 0
+    try:
+        for idx, ok, feats, reasons in engine.map(items, desc.name, desc.config, state, identity):
+            for i, good, f, why in zip(idx.tolist(), ok, feats, reasons):
+                s = (i // size) * size
+                b = buf.get(s)
+                if b is None or b["seen"][i - s]:
+                    continue  # a retried batch answered twice: the first answer is kept
+                b["feats"][i - s], b["ok"][i - s], b["reasons"][i - s] = f, good, why
+                b["seen"][i - s] = True
+                b["left"] -= 1
+                if b["left"] == 0:
+                    _write(store, ids, s, b)
+                    del buf[s]
+            computed += len(idx)
+            if bar is not None:
+                bar.update(len(idx))
+    finally:
+        if bar is not None:
+            bar.close()
+    missing = sum(b["left"] for b in buf.values())
+    if missing:
+        raise DescriptorError(f"{missing} images were not returned by the {opts.engine} engine;"
+                              " re-run to describe them (finished shards are kept)")
+    dt = time.monotonic() - t0
+    log.info("described %d images in %.1f s (%.2f img/s)", computed, dt, computed / max(dt, 1e-9))
+    return computed
+
+
+def _write(store: ShardStore, ids: Sequence[str], s: int, b: dict) -> None:
+    keep = np.flatnonzero(b["ok"])
+    skipped = [{"id": ids[s + k], "reason": b["reasons"][k]}
+               for k in range(len(b["ok"])) if not b["ok"][k]]
+    store.write(s, b["end"], [ids[s + k] for k in keep], b["feats"][keep], skipped)
+
+
+def _bar(total: int, initial: int, enabled: bool):
+    if not enabled:
+        return None
+    from tqdm import tqdm
+
+    # images/s and ETA of this run (``initial`` = rows of resumed shards)
+    return tqdm(total=total, initial=initial, desc="describe", unit="img", smoothing=0.1,
+                disable=None, dynamic_ncols=True)
+
+
+def make_engine(opts: DescribeOptions, desc: GlobalDescriptor, source: ImageSource) -> Any:
+    if opts.engine == "local":
+        return LocalEngine(desc, source, opts.batch_size)
+    from vlm_vpr_ros.distributed.ray_engine import RaySession
+
+    session = RaySession(opts)
+    try:
+        session.start()
+        return session.describer(source)
+    except BaseException:
+        session.close()
+        raise
