@@ -21,6 +21,8 @@ REPO = Path(__file__).resolve().parents[1]
 RAY_BIN = Path(sys.executable).with_name("ray")
 #: descriptor of the Ray tests: the fast VLAD preset (fitted, so fit + broadcast are covered)
 DESCRIPTOR = "vlad_rootsift_fast"
+#: smaller images and fewer keypoints keep the suite's Ray tests within their time budget
+DESCRIPTOR_OPTIONS = {"max_side": 320, "n_features": 400}
 OBJECT_STORE = 100 * 1024 * 1024
 
 

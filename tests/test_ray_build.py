@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 import pytest
 
-from ray_helpers import (DESCRIPTOR, OBJECT_STORE, LocalCluster, free_port, make_reference_set,
+from ray_helpers import (DESCRIPTOR, DESCRIPTOR_OPTIONS, OBJECT_STORE, LocalCluster, free_port, make_reference_set,
                          ray_env)
 from vlm_vpr_ros.distributed.describe import DescribeOptions, describe_items, describe_to_shards
 from vlm_vpr_ros.distributed.shards import ShardStore, read_shards
@@ -34,7 +34,7 @@ from vlm_vpr_ros.pipeline import LocalizationPipeline
 from vlm_vpr_ros.priors.base import Prior, PriorResult
 
 CLUSTERS = 4
-N_REFS = 32
+N_REFS = 24
 
 
 # -- data and the local reference build ---------------------------------------------------------
@@ -49,8 +49,9 @@ def refs(tmp_path_factory):
 @pytest.fixture(scope="module")
 def reference_map(refs, tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("local") / "map"
-    build_map(refs["images"], refs["coords"], out, descriptor=DESCRIPTOR, partition="kmeans",
-              clusters=CLUSTERS, progress=False)
+    build_map(refs["images"], refs["coords"], out, descriptor=DESCRIPTOR,
+              descriptor_config=DESCRIPTOR_OPTIONS, partition="kmeans", clusters=CLUSTERS,
+              progress=False)
     return out
 
 
@@ -171,7 +172,8 @@ def test_ray_build_equals_local_build(local_ray, refs, reference_map, tmp_path):
     out = tmp_path / "map"
     opts = DescribeOptions(engine="ray", workers=2, batch_size=4, shard_size=8, progress=False)
     build_map_ray(refs["images"].as_uri(), refs["coords"], out, descriptor=DESCRIPTOR,
-                  partition="kmeans", clusters=CLUSTERS, options=opts)
+                  descriptor_config=DESCRIPTOR_OPTIONS, partition="kmeans", clusters=CLUSTERS,
+                  options=opts)
     assert not (out / ".build").exists()
     m = json.loads((out / "manifest.json").read_text())
     assert m["source"]["skipped"] == ["database/broken.jpg"]
@@ -192,7 +194,7 @@ def test_ray_describe_skips_an_image_a_worker_raises_on(local_ray, tmp_path):
         ids.append(f"t{i}.jpg")
     cv2.imwrite(str(img / "tiny.png"), np.full((4, 4, 3), 90, np.uint8))
     ids.insert(1, "tiny.png")  # not in the fit sample (rows 0, 3, 6 with fit_max_images=3)
-    cfg = {"fit_max_images": 3}
+    cfg = {**DESCRIPTOR_OPTIONS, "fit_max_images": 3}
     res = {}
     for engine in ("local", "ray"):
         opts = DescribeOptions(engine=engine, workers=1, batch_size=4, shard_size=4,
@@ -216,8 +218,9 @@ def cli(*args: str) -> list[str]:
 
 
 def build_cmd(refs, out: Path, address: str) -> list[str]:
+    opts = [a for k, v in DESCRIPTOR_OPTIONS.items() for a in ("--descriptor-option", f"{k}={v}")]
     return cli("build-map", "--images", str(refs["images"]), "--coords", str(refs["coords"]),
-               "--out", str(out), "--descriptor", DESCRIPTOR, "--clusters", str(CLUSTERS),
+               "--out", str(out), "--descriptor", DESCRIPTOR, *opts, "--clusters", str(CLUSTERS),
                "--engine", "ray", "--ray-address", address, "--workers", "2",
                "--batch-size", "2", "--shard-size", "4")
 
@@ -285,7 +288,7 @@ def test_cluster_driver_killed_and_rerun_resumes(cluster, refs, reference_map, t
                            capture_output=True, text=True, timeout=180)
     assert rerun.returncode == 0, rerun.stderr[-3000:]
     assert "resumed the fitted" in rerun.stderr  # the fit was not redone either
-    # "described 32/33 images -> ... (1 skipped, 3 shards resumed): 21 images in ..."
+    # "described 24/25 images -> ... (1 skipped, 3 shards resumed): 21 images in ..."
     line = next(x for x in rerun.stderr.splitlines() if "shards resumed" in x)
     resumed = int(line.split(" shards resumed")[0].rsplit(", ", 1)[1])
     computed = int(line.split("): ")[1].split(" images")[0])

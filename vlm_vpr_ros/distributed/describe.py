@@ -84,10 +84,17 @@ class DescribeResult:
     workers: int
     engine: str
     identity: dict
+    #: seconds of the describe phase alone (no start-up, no fit)
+    describe_seconds: float = 0.0
 
     @property
     def images_per_s(self) -> float:
         return self.computed_images / self.seconds if self.seconds > 0 else 0.0
+
+    @property
+    def describe_images_per_s(self) -> float:
+        t = self.describe_seconds
+        return self.computed_images / t if t > 0 else 0.0
 
     def summary(self) -> str:
         return (f"described {self.described}/{self.rows} images -> {self.folder} "
@@ -230,7 +237,7 @@ def describe_to_shards(images: str | Path, ids: Sequence[str], out: str | Path,
         plan = plan_shards(len(ids), opts.shard_size)
         done = store.done()
         pending = [(s, e) for s, e in plan if s not in done]
-        computed = _run(engine, store, ids, pending, desc, state, identity, opts,
+        computed, t_describe = _run(engine, store, ids, pending, desc, state, identity, opts,
                         n_done=sum(e - s for s, e in plan if s in done))
         meta = store.finish(identity, desc.needs_fit, len(ids))
     finally:
@@ -238,17 +245,17 @@ def describe_to_shards(images: str | Path, ids: Sequence[str], out: str | Path,
             engine.close()
     res = DescribeResult(Path(out), len(ids), meta["described"], meta["skipped"],
                          len(plan) - len(pending), computed, time.monotonic() - t_start,
-                         engine.workers, opts.engine, identity)
+                         engine.workers, opts.engine, identity, t_describe)
     log.info("%s", res.summary())
     return res
 
 
 def _run(engine: Engine, store: ShardStore, ids: Sequence[str],
          pending: list[tuple[int, int]], desc: GlobalDescriptor, state, identity,
-         opts: DescribeOptions, n_done: int) -> int:
+         opts: DescribeOptions, n_done: int) -> tuple[int, float]:
     """Describe the rows of the pending shards; write each shard when its rows are all back."""
     if not pending:
-        return 0
+        return 0, 0.0
     size, dim = opts.shard_size, desc.dim
     items = [(i, ids[i]) for s, e in pending for i in range(s, e)]
     buf: dict[int, dict] = {s: {"end": e, "feats": np.zeros((e - s, dim), np.float32),
@@ -281,7 +288,7 @@ def _run(engine: Engine, store: ShardStore, ids: Sequence[str],
                               " re-run to describe them (finished shards are kept)")
     dt = time.monotonic() - t0
     log.info("described %d images in %.1f s (%.2f img/s)", computed, dt, computed / max(dt, 1e-9))
-    return computed
+    return computed, dt
 
 
 def _write(store: ShardStore, ids: Sequence[str], s: int, b: dict) -> None:
