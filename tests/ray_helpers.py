@@ -38,7 +38,7 @@ def make_reference_set(root: Path, shared: Path | None, n: int = 40) -> dict:
     """``root/images`` + ``root/coords.csv`` (+ a corrupt image) and query images.
 
     With ../shared: every k-th SF night database image (symlinked), the real night queries.
-    Without: generated textured images around San Francisco, queries = re-encoded refs."""
+    Without: generated textured images around San Francisco, queries = some of the references."""
     img = root / "images"
     (img / "database").mkdir(parents=True)
     rows, queries = [], []
@@ -51,7 +51,7 @@ def make_reference_set(root: Path, shared: Path | None, n: int = 40) -> dict:
             os.symlink(sf / r["file"], img / r["file"])
             rows.append((r["file"], float(r["lat"]), float(r["lon"])))
         with open(sf / "queries.csv", newline="") as fh:
-            queries = [sf / r["file"] for r in list(csv.DictReader(fh))[:8]]
+            queries = [sf / r["file"] for r in list(csv.DictReader(fh))[:4]]
     else:
         rng = np.random.default_rng(0)
         for i in range(n):
@@ -59,7 +59,7 @@ def make_reference_set(root: Path, shared: Path | None, n: int = 40) -> dict:
             name = f"database/gen_{i:03d}.jpg"
             cv2.imwrite(str(img / name), im)
             rows.append((name, 37.70 + 0.1 * rng.random(), -122.50 + 0.1 * rng.random()))
-        queries = [img / rows[i][0] for i in range(0, n, 5)]
+        queries = [img / rows[i][0] for i in range(0, n, n // 4)][:4]
     # one unreadable reference: skipped and listed by both engines
     (img / "database" / "broken.jpg").write_bytes(b"\xff\xd8 not really a jpeg")
     rows.insert(len(rows) // 2, ("database/broken.jpg", 37.75, -122.45))

@@ -34,7 +34,7 @@ from vlm_vpr_ros.pipeline import LocalizationPipeline
 from vlm_vpr_ros.priors.base import Prior, PriorResult
 
 CLUSTERS = 4
-N_REFS = 24
+N_REFS = 16
 
 
 # -- data and the local reference build ---------------------------------------------------------
@@ -196,20 +196,25 @@ def test_ray_describe_skips_an_image_a_worker_raises_on(local_ray, tmp_path):
     ids.insert(1, "tiny.png")  # not in the fit sample (rows 0, 3, 6 with fit_max_images=3)
     cfg = {**DESCRIPTOR_OPTIONS, "fit_max_images": 3}
     res = {}
-    for engine in ("local", "ray"):
+    for engine, fit_on in (("local", "driver"), ("ray", "driver"), ("ray", "cluster")):
         opts = DescribeOptions(engine=engine, workers=1, batch_size=4, shard_size=4,
-                               progress=False)
-        res[engine] = describe_to_shards(img, ids, tmp_path / engine, DESCRIPTOR, cfg, opts)
-        assert [s["id"] for s in res[engine].skipped] == ["tiny.png"]
-        assert "unusable size 4x4" in res[engine].skipped[0]["reason"]
-        assert res[engine].described == 6
-    meta = json.loads((tmp_path / "ray" / "describe.json").read_text())
-    assert meta["skipped"][0]["id"] == "tiny.png"
-    assert meta["descriptor"] == res["local"].identity
-    a, ok_a = read_shards(tmp_path / "local", ids)
-    b, ok_b = read_shards(tmp_path / "ray", ids)
+                               fit_on=fit_on, progress=False)
+        out = tmp_path / f"{engine}_{fit_on}"
+        res[out.name] = r = describe_to_shards(img, ids, out, DESCRIPTOR, cfg, opts)
+        assert [s["id"] for s in r.skipped] == ["tiny.png"]
+        assert "unusable size 4x4" in r.skipped[0]["reason"]
+        assert r.described == 6
+        meta = json.loads((out / "describe.json").read_text())
+        assert meta["skipped"] == r.skipped and meta["descriptor"] == r.identity
+    a, ok_a = read_shards(tmp_path / "local_driver", ids)
+    b, ok_b = read_shards(tmp_path / "ray_driver", ids)
     assert ok_a.tolist() == ok_b.tolist() == [True, False, True, True, True, True, True]
     np.testing.assert_allclose(a, b, atol=1e-5, rtol=0)
+    # fitted in a Ray task (one thread): same sample, same shapes; k-means may differ in the
+    # last bits with another thread count, which is why the driver fits by default
+    c, ok_c = read_shards(tmp_path / "ray_cluster", ids)
+    assert ok_c.tolist() == ok_a.tolist() and c.shape == a.shape
+    assert np.allclose(np.linalg.norm(c[ok_c], axis=1), 1.0, atol=1e-5)
 
 
 # -- a real two-node cluster, driven by the CLI -------------------------------------------------
@@ -288,7 +293,7 @@ def test_cluster_driver_killed_and_rerun_resumes(cluster, refs, reference_map, t
                            capture_output=True, text=True, timeout=180)
     assert rerun.returncode == 0, rerun.stderr[-3000:]
     assert "resumed the fitted" in rerun.stderr  # the fit was not redone either
-    # "described 24/25 images -> ... (1 skipped, 3 shards resumed): 21 images in ..."
+    # "described 16/17 images -> ... (1 skipped, 3 shards resumed): 21 images in ..."
     line = next(x for x in rerun.stderr.splitlines() if "shards resumed" in x)
     resumed = int(line.split(" shards resumed")[0].rsplit(", ", 1)[1])
     computed = int(line.split("): ")[1].split(" images")[0])

@@ -25,6 +25,10 @@ def add_engine_args(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--num-gpus-per-worker", type=float, default=0.0, metavar="X",
                    help="GPUs per actor (e.g. 1, or 0.5 to share a GPU); deep models then "
                         "run on the GPU in batches of --batch-size")
+    g.add_argument("--fit-on", choices=["driver", "cluster"], default="driver",
+                   help="where vlad_rootsift learns its codebook/PCA from the sample: driver "
+                        "(default; identical to the local build) or cluster (one Ray task, "
+                        "for drivers that cannot read the images)")
     g.add_argument("--shard-size", type=int, default=DEFAULT_SHARD_SIZE, metavar="N",
                    help=f"images per descriptor shard; the unit of resuming (default "
                         f"{DEFAULT_SHARD_SIZE})")
@@ -36,7 +40,7 @@ def engine_options(args: argparse.Namespace):
     opts = DescribeOptions(engine=args.engine, ray_address=args.ray_address,
                            workers=args.workers, batch_size=args.batch_size,
                            num_gpus_per_worker=args.num_gpus_per_worker,
-                           shard_size=args.shard_size)
+                           shard_size=args.shard_size, fit_on=args.fit_on)
     opts.validate()
     return opts
 

@@ -51,6 +51,9 @@ class DescribeOptions:
     num_gpus_per_worker: float = 0.0
     num_cpus_per_worker: float = 1.0
     shard_size: int = DEFAULT_SHARD_SIZE
+    #: where a stateful descriptor is fitted: "driver" (this process, bit-identical to the
+    #: local build) or "cluster" (one Ray task, when the driver cannot read the images)
+    fit_on: str = "driver"
     progress: bool = True
     #: extra ``ray.init`` arguments for a Ray started here (e.g. object_store_memory)
     ray_init: dict[str, Any] = field(default_factory=dict)
@@ -66,6 +69,8 @@ class DescribeOptions:
             raise ConfigError(f"--batch-size must be 1..4096, got {self.batch_size}")
         if self.num_gpus_per_worker < 0 or self.num_cpus_per_worker <= 0:
             raise ConfigError("--num-gpus-per-worker must be >= 0 and CPUs per worker > 0")
+        if self.fit_on not in ("driver", "cluster"):
+            raise ConfigError(f"--fit-on must be driver or cluster, got {self.fit_on!r}")
         if self.shard_size < 1:
             raise ConfigError(f"--shard-size must be >= 1, got {self.shard_size}")
         if self.engine == "local" and (self.ray_address or self.num_gpus_per_worker):

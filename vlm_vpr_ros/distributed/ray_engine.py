@@ -229,11 +229,23 @@ class RayDescriber:
         return cfg
 
     def fit(self, name: str, config: Mapping[str, Any], sample_ids: list[str]):
-        ray = self.session.ray
-        task = ray.remote(num_cpus=1, max_retries=2)(_fit_task)
+        """Fit once on the sample; the state then reaches every actor through the object
+        store. ``fit_on="driver"`` (default) fits in this process, as the local build does:
+        faiss k-means depends on the thread count, so this gives the local build's state bit
+        for bit. ``"cluster"`` runs it as one Ray task (for drivers that cannot read the
+        images, e.g. Ray Client from a laptop)."""
+        from vlm_vpr_ros.descriptors import create_descriptor
+        from vlm_vpr_ros.distributed.describe import fit_on_sample
+
         t0 = time.monotonic()
-        state = ray.get(task.remote(name, dict(config), self.source, sample_ids))
-        log.info("fitted %s on the cluster in %.1f s", name, time.monotonic() - t0)
+        if self.opts.fit_on == "driver":
+            state = fit_on_sample(create_descriptor(name, config), self.source, sample_ids)
+        else:
+            ray = self.session.ray
+            task = ray.remote(num_cpus=1, max_retries=2)(_fit_task)
+            state = ray.get(task.remote(name, dict(config), self.source, sample_ids))
+        log.info("fitted %s on the %s in %.1f s", name, self.opts.fit_on,
+                 time.monotonic() - t0)
         return state
 
     def map(self, items: list[tuple[int, str]], name: str, config: Mapping[str, Any],
