@@ -33,6 +33,8 @@ from vlm_vpr_ros.errors import ConfigError, DescriptorError, ImageDecodeError
 
 log = logging.getLogger(__name__)
 
+#: seconds between progress log lines when there is no terminal for the bar
+LOG_EVERY_S = 30.0
 #: one described batch: row indices, ok flags, (k, dim) descriptors, reasons ("" when ok)
 BatchResult = tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]
 
@@ -268,6 +270,7 @@ def _run(engine: Engine, store: ShardStore, ids: Sequence[str],
                                 "reasons": [""] * (e - s), "left": e - s} for s, e in pending}
     bar = _bar(len(ids), n_done, opts.progress)
     t0, computed = time.monotonic(), 0
+    last_log, todo = t0, len(items)
     try:
         for idx, ok, feats, reasons in engine.map(items, desc.name, desc.config, state, identity):
             for i, good, f, why in zip(idx.tolist(), ok, feats, reasons):
@@ -284,6 +287,13 @@ def _run(engine: Engine, store: ShardStore, ids: Sequence[str],
             computed += len(idx)
             if bar is not None:
                 bar.update(len(idx))
+            now = time.monotonic()
+            if opts.progress and (bar is None or bar.disable) and now - last_log >= LOG_EVERY_S:
+                # no terminal (a cluster job's log): a line with the same figures as the bar
+                rate = computed / (now - t0)
+                log.info("describe: %d/%d images, %.2f img/s, ETA %s", n_done + computed,
+                         len(ids), rate, _hms((todo - computed) / max(rate, 1e-9)))
+                last_log = now
     finally:
         if bar is not None:
             bar.close()
@@ -301,6 +311,11 @@ def _write(store: ShardStore, ids: Sequence[str], s: int, b: dict) -> None:
     skipped = [{"id": ids[s + k], "reason": b["reasons"][k]}
                for k in range(len(b["ok"])) if not b["ok"][k]]
     store.write(s, b["end"], [ids[s + k] for k in keep], b["feats"][keep], skipped)
+
+
+def _hms(seconds: float) -> str:
+    s = int(seconds)
+    return f"{s // 3600}:{s % 3600 // 60:02d}:{s % 60:02d}"
 
 
 def _bar(total: int, initial: int, enabled: bool):
