@@ -109,16 +109,30 @@ class _Transaction:
         self.new["files"][rel] = {"bytes": p.stat().st_size, "sha256": sha256_file(p)}
 
     def write_submap(self, sub: Submap, gen: int) -> dict:
-        stem = f"submaps/{sub.id}.g{gen}"
-        rel = {"index": f"{stem}.faiss", "coords": f"{stem}.coords.npy",
-               "ids": f"{stem}.ids.json"}
-        atomic_write_index(self.path / rel["index"], sub.index)
-        atomic_save_npy(self.path / rel["coords"], sub.coords.astype(np.float64))
-        atomic_write_json(self.path / rel["ids"], sub.ids)
+        """Write a submap under generation-stamped names in the map's own format version;
+        returns its manifest entry."""
+        entry = {"id": sub.id, "count": sub.count,
+                 "centroid": [round(float(c), 7) for c in sub.centroid]}
+        if int(self.old.get("version", 1)) >= 2:  # format v2 (vlm_vpr_ros.maps.store)
+            from vlm_vpr_ros.maps.store import write_submap
+
+            kind = getattr(sub, "kind", "flat")
+            rel = write_submap(self.path, f"{sub.id}.g{gen}", kind, sub.index, sub.coords,
+                               list(sub.ids), getattr(sub, "rerank", None))
+            entry.update({"group": getattr(sub, "group", "") or sub.id, "kind": kind})
+            if getattr(sub, "recall", None):
+                entry["recall"] = sub.recall
+        else:
+            stem = f"submaps/{sub.id}.g{gen}"
+            rel = {"index": f"{stem}.faiss", "coords": f"{stem}.coords.npy",
+                   "ids": f"{stem}.ids.json"}
+            atomic_write_index(self.path / rel["index"], sub.index)
+            atomic_save_npy(self.path / rel["coords"], np.asarray(sub.coords, np.float64))
+            atomic_write_json(self.path / rel["ids"], list(sub.ids))
         for r in rel.values():
             self.record(r)
-        return {"id": sub.id, "count": sub.count,
-                "centroid": [round(float(c), 7) for c in sub.centroid], "files": rel}
+        entry["files"] = rel
+        return entry
 
     def commit(self) -> None:
         listed = self.new["files"]
@@ -299,18 +313,63 @@ def _describe(desc, root: Path, rows: Sequence[tuple[str, float, float]],
     return (np.concatenate(feats) if feats else np.zeros((0, dim), np.float32)), good, skipped
 
 
-def _vectors(sub: Submap) -> np.ndarray:
+def _vectors(sub: Any) -> np.ndarray:
+    """All descriptors of a submap, float32 (flat/fp16: from the index; pq: its fp16 re-rank
+    vectors)."""
+    fn = getattr(sub, "vectors", None)
+    if fn is not None:
+        return np.asarray(fn(), dtype=np.float32)
     return sub.index.reconstruct_n(0, sub.index.ntotal)
 
 
-def _rebuilt(kind: str, sub_id: str, vectors: np.ndarray, coords: np.ndarray,
-             ids: list[str]) -> Submap:
+def _kind_of(ref_map: ReferenceMap, sub: Any | None) -> str:
+    kind = getattr(sub, "kind", None) if sub is not None else None
+    if kind:
+        return kind
+    kind = ref_map.manifest.get("index", "flat")
+    if kind not in ("flat", "fp16", "pq"):  # "auto": new submaps are small
+        kinds = {getattr(s, "kind", "flat") for s in ref_map.submaps}
+        kind = "fp16" if "fp16" in kinds else "flat"
+    return kind
+
+
+def _rebuilt(ref_map: ReferenceMap, sub_id: str, vectors: np.ndarray, coords: np.ndarray,
+             ids: list[str], like: Any | None = None) -> Submap:
+    """A submap of the same index kind as ``like`` (or the map's) holding ``vectors``."""
+    vecs = np.ascontiguousarray(vectors, dtype=np.float32)
+    coords = np.asarray(coords, np.float64)
+    centroid = spherical_mean(coords[:, 0], coords[:, 1])
+    kind = _kind_of(ref_map, like)
+    if kind == "pq" or int(ref_map.manifest.get("version", 1)) >= 2:
+        from vlm_vpr_ros.maps.indexes import effective_kind, make_index, measure_recall
+
+        kind = effective_kind(kind, len(vecs))
+        trained = _pq_codebook(ref_map) if kind == "pq" else None
+        index = make_index(kind, vecs, trained)
+        rerank = vecs.astype(np.float16) if kind == "pq" else None
+        factor = int(getattr(ref_map, "rerank_factor", 8))
+        recall = measure_recall(index, kind, rerank, vecs, factor) if kind != "flat" else None
+        return Submap(sub_id, centroid, coords, list(ids), index, kind=kind, rerank=rerank,
+                      group=getattr(like, "group", "") if like is not None else "",
+                      recall=recall)
     from vlm_vpr_ros.map_build import new_index
 
-    index = new_index(kind, vectors.shape[1])
-    index.add(np.ascontiguousarray(vectors, dtype=np.float32))
-    centroid = spherical_mean(coords[:, 0], coords[:, 1])
-    return Submap(sub_id, centroid, np.asarray(coords, np.float64), list(ids), index)
+    index = new_index(kind, vecs.shape[1])
+    index.add(vecs)
+    return Submap(sub_id, centroid, coords, list(ids), index)
+
+
+def _pq_codebook(ref_map: ReferenceMap) -> Any:
+    """The map's shared PQ codebook (trained, empty), taken from one of its pq submaps; new
+    pq submaps must use it (a new codebook would make distances incomparable)."""
+    import faiss
+
+    for s in ref_map.submaps:
+        if getattr(s, "kind", "") == "pq":
+            index = faiss.clone_index(s.index)
+            index.reset()
+            return index
+    raise MapError("the map has no pq submap to take the PQ codebook from")
 
 
 def add_references(map_dir: str | os.PathLike[str], images_dir: str | os.PathLike[str],
@@ -358,7 +417,6 @@ def add_references(map_dir: str | os.PathLike[str], images_dir: str | os.PathLik
         coords = np.array([[rows[i][1], rows[i][2]] for i in good], np.float64)
         ids = [rows[i][0] for i in good]
         target = assign_submaps(ref_map, coords, seed)
-        kind = manifest.get("index", "flat")
         gen = int(manifest.get("generation", 0)) + 1
         tx = _Transaction(path, manifest)
         res = EditResult(path, "add", gen, 0, 0, count=len(ids), skipped=skipped)
@@ -368,13 +426,14 @@ def add_references(map_dir: str | os.PathLike[str], images_dir: str | os.PathLik
                 sel = [i for i, t in enumerate(target) if t == sid]
                 k = ref_map.submap_index(sid)
                 if k is None:
-                    sub = _rebuilt(kind, sid, feats[sel], coords[sel], [ids[i] for i in sel])
+                    sub = _rebuilt(ref_map, sid, feats[sel], coords[sel],
+                                   [ids[i] for i in sel])
                     res.created.append(sid)
                 else:
                     old = ref_map.submaps[k]
-                    sub = _rebuilt(kind, sid, np.concatenate([_vectors(old), feats[sel]]),
-                                   np.concatenate([old.coords, coords[sel]]),
-                                   old.ids + [ids[i] for i in sel])
+                    sub = _rebuilt(ref_map, sid, np.concatenate([_vectors(old), feats[sel]]),
+                                   np.concatenate([np.asarray(old.coords), coords[sel]]),
+                                   list(old.ids) + [ids[i] for i in sel], like=old)
                     for r in entries[sid]["files"].values():
                         tx.new["files"].pop(r, None)
                 res.changed.append(sid)
@@ -445,14 +504,13 @@ def remove_references(map_dir: str | os.PathLike[str], ids: Iterable[str],
             raise MapError(f"removing all {ref_map.n_references} references would leave an "
                            "empty map; build a new map instead")
         manifest = ref_map.manifest
-        kind = manifest.get("index", "flat")
         gen = int(manifest.get("generation", 0)) + 1
         tx = _Transaction(path, manifest)
         res = EditResult(path, "remove", gen, 0, 0, count=len(drop))
         try:
             entries = {e["id"]: e for e in tx.new["submaps"]}
             for sub in ref_map.submaps:
-                keep = [j for j, i in enumerate(sub.ids) if i not in drop]
+                keep = [j for j, i in enumerate(list(sub.ids)) if i not in drop]
                 if len(keep) == sub.count:
                     continue
                 for r in entries[sub.id]["files"].values():
@@ -461,8 +519,9 @@ def remove_references(map_dir: str | os.PathLike[str], ids: Iterable[str],
                     del entries[sub.id]
                     res.dropped.append(sub.id)
                     continue
-                new = _rebuilt(kind, sub.id, _vectors(sub)[keep], sub.coords[keep],
-                               [sub.ids[j] for j in keep])
+                new = _rebuilt(ref_map, sub.id, _vectors(sub)[keep],
+                               np.asarray(sub.coords)[keep], [sub.ids[j] for j in keep],
+                               like=sub)
                 entries[sub.id] = tx.write_submap(new, gen)
                 res.changed.append(sub.id)
             index = image_index(path, manifest)
