@@ -4,6 +4,8 @@ graph (separate process, Fast DDS, own domain)."""
 
 from __future__ import annotations
 
+import json
+import os
 import shutil
 import threading
 import time
@@ -66,9 +68,12 @@ def test_runtime_swaps_the_map_between_queries(half, demo_data, tmp_path):
         deadline = time.monotonic() + 20
         while time.monotonic() < deadline and len(outcomes) < n_swap + 3:
             time.sleep(0.05)
-        # a broken map on disk: reload refused, the loaded map keeps answering
-        idx = sorted((map_dir / "submaps").glob("*.faiss"))[0]
-        idx.write_bytes(idx.read_bytes()[:-8] + b"\0" * 8)
+        # a broken map on disk: reload refused, the loaded map keeps answering (the damaged
+        # copy replaces the file: the running map may have it memory-mapped)
+        man = json.loads((map_dir / "manifest.json").read_text())
+        idx = map_dir / man["submaps"][0]["files"]["index"]
+        (map_dir / "bad.tmp").write_bytes(idx.read_bytes()[:-8] + b"\0" * 8)
+        os.replace(map_dir / "bad.tmp", idx)
         ok, msg = rt.reload_map()
         assert not ok and "current map stays in use" in msg and "checksum" in msg
         n_bad = len(outcomes)

@@ -7,10 +7,11 @@ join the submap their position belongs to (same country; nearest K-means centroi
 submaps. Only the affected submaps are rewritten.
 
 Atomicity: every file an edit writes has a new name (``submaps/<id>.g<generation>.*``), the
-manifest is replaced last with ``os.replace`` (the commit point), then the files no manifest
-lists any more are deleted. An edit that fails before the commit deletes what it wrote and
-leaves the old map as it was; a reader that loaded the old manifest keeps a complete map. One
-edit at a time (``MAP/.edit.lock``).
+manifest is replaced last with ``os.replace`` (the commit point). The files it no longer lists
+stay one more generation (manifest ``retired``) so that a reader of the previous manifest —
+a node that opened submaps lazily — keeps a complete map until it reloads; the next edit
+deletes them. An edit that fails before the commit deletes what it wrote and leaves the old
+map as it was. One edit at a time (``MAP/.edit.lock``).
 
 Maps may hold their reference images (teach maps built from a bag): ``MAP/images/<id>``, listed
 with size and sha256 in ``MAP/images/index.g<generation>.json`` (itself in the manifest's
@@ -135,13 +136,19 @@ class _Transaction:
         return entry
 
     def commit(self) -> None:
+        """Replace the manifest (the commit point). The files the new manifest no longer lists
+        are kept for one more generation (``retired``): a process that opened the previous
+        generation lazily (format v2) can still open its submaps until it reloads; the files
+        retired by the edit before are deleted now."""
         listed = self.new["files"]
         for rel in list(listed):
             if not (self.path / rel).is_file():
                 raise MapError(f"internal: {rel} listed but not written")
+        gone = sorted(set(self.old["files"]) - set(listed))
+        older = [r for r in self.old.get("retired", []) if r not in listed]
+        self.new["retired"] = gone
         atomic_write_json(self.path / MANIFEST, self.new)
-        gone = set(self.old["files"]) - set(listed)
-        for rel in sorted(gone):
+        for rel in older:
             with contextlib.suppress(FileNotFoundError):
                 (self.path / rel).unlink()
 
