@@ -23,7 +23,7 @@ def map_copy(demo_map, tmp_path):
 def test_round_trip_and_manifest(demo_map, demo_data):
     m = ReferenceMap.load(demo_map)
     man = json.loads((demo_map / "manifest.json").read_text())
-    assert man["format"] == "vlm_vpr_ros.map" and man["version"] == 1
+    assert man["format"] == "vlm_vpr_ros.map" and man["version"] == 2
     assert man["metric"] == "squared_l2" and man["n_references"] == 71
     assert man["descriptor"]["name"] == "vlad_rootsift_fast" and man["descriptor"]["dim"] == 70
     assert man["partition"]["method"] == "kmeans"
@@ -65,15 +65,18 @@ def _edit_manifest(path, fn):
     (lambda p: _edit_manifest(p, lambda m: m.pop("submaps")), "lacks"),
     (lambda p: _edit_manifest(p, lambda m: m["descriptor"].update(dim=71)), "dim 70"),
     (lambda p: _edit_manifest(p, lambda m: m.update(n_references=70)), "manifest says 70"),
-    (lambda p: _edit_manifest(p, lambda m: m["submaps"][0].update(count=999)), "holds"),
+    (lambda p: _edit_manifest(p, lambda m: m["submaps"][0].update(count=999)), "hold"),
     (lambda p: next((p / "submaps").glob("*.faiss")).unlink(), "missing file"),
     (lambda p: next((p / "submaps").glob("*.coords.npy")).write_bytes(b"xx"), "bytes"),
+    (lambda p: next((p / "submaps").glob("*.ids.npy")).write_bytes(b"xx"), "bytes"),
 ], ids=["no-manifest", "bad-json", "version", "format", "keys", "dim", "count-total",
-        "count-submap", "missing-index", "truncated-coords"])
+        "count-submap", "missing-index", "truncated-coords", "truncated-ids"])
 def test_corrupt_maps_give_clear_errors(map_copy, corrupt, message):
     corrupt(map_copy)
     with pytest.raises(MapError, match=message):
-        ReferenceMap.load(map_copy)
+        m = ReferenceMap.load(map_copy)  # v2: manifest + sizes at open, the rest on first use
+        for s in m.submaps:
+            s.opened()
 
 
 def test_flipped_byte_is_caught_by_checksum_and_faiss_garbage_by_reader(map_copy):
@@ -82,11 +85,13 @@ def test_flipped_byte_is_caught_by_checksum_and_faiss_garbage_by_reader(map_copy
     data[-5] ^= 0xFF
     f.write_bytes(bytes(data))
     with pytest.raises(MapError, match="checksum"):
-        ReferenceMap.load(map_copy)
-    # without checksum verification, a garbage index must still fail cleanly
+        ReferenceMap.load(map_copy, verify=True)
+    # without checksum verification, a garbage index must still fail cleanly (on first use)
     f.write_bytes(b"\x00" * len(data))
+    m = ReferenceMap.load(map_copy, verify=False)
     with pytest.raises(MapError):
-        ReferenceMap.load(map_copy, verify=False)
+        for s in m.submaps:
+            s.opened()
 
 
 def test_descriptor_mismatch_is_refused(demo_map):

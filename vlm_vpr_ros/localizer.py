@@ -70,11 +70,12 @@ class Localizer:
         chosen: list[int] = []
         if self.map.partition_method == "country":
             cc = country_codes([prior.lat], [prior.lon])[0]
-            idx = self.map.submap_index(cc)
-            if idx is None:
+            pieces = self.map.group_members(cc)  # >1 when a big country was split (balanced)
+            if not pieces:
                 flags.append("prior_not_in_map")
             else:
-                chosen.append(idx)
+                near = nearest_centroids(prior.lat, prior.lon, self.map.centroids[pieces], 1)
+                chosen.append(pieces[int(near[0])])
         for i in nearest_centroids(prior.lat, prior.lon, self.map.centroids, n + len(chosen)):
             if len(chosen) >= n:
                 break
@@ -91,12 +92,11 @@ class Localizer:
                                   f"{self.map.dim}")
         found: list[tuple[float, int, int]] = []
         for si in submaps:
-            sub = self.map.submaps[si]
-            kk = min(k, sub.index.ntotal)
+            kk = min(k, self.map.submaps[si].count)
             if kk == 0:
                 continue
-            dist, idx = sub.index.search(q, kk)
-            found += [(float(d), si, int(j)) for d, j in zip(dist[0], idx[0]) if j >= 0]
+            dist, idx = self.map.search_submap(si, q, kk)  # flat/fp16 exact; pq + re-rank
+            found += [(float(d), si, int(j)) for d, j in zip(dist, idx) if j >= 0]
         found.sort(key=lambda t: (t[0], t[1], t[2]))
         out = []
         for d, si, j in found[:k]:

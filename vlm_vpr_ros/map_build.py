@@ -19,6 +19,10 @@ from vlm_vpr_ros.errors import DataError, ImageDecodeError, MapError
 from vlm_vpr_ros.imageio import load_image
 from vlm_vpr_ros.map_io import (MANIFEST, ReferenceMap, Submap, atomic_save_npy, atomic_save_npz,
                                 atomic_write_json)
+from vlm_vpr_ros.maps.balance import split_large
+from vlm_vpr_ros.maps.indexes import (DEFAULT_RERANK_FACTOR, INDEX_KINDS, PQ_TRAIN_SAMPLE,
+                                      check_kind, choose_kinds, effective_kind, make_index,
+                                      measure_recall, train_pq)
 from vlm_vpr_ros.partition import make_partition
 from vlm_vpr_ros.priors.simple import valid_latlon
 
@@ -64,38 +68,65 @@ def _fingerprint(rows, descriptor: GlobalDescriptor, partition: str, clusters: i
 def assemble_map(desc: np.ndarray, coords: np.ndarray, ids: list[str], identity: dict,
                  state: Mapping[str, np.ndarray], partition: str, clusters: int = 100,
                  seed: int = 0, extra: Mapping[str, Any] | None = None,
-                 index: str = "flat", engine: Any = None) -> ReferenceMap:
-    """Partition references and build one exact L2 index per submap (in memory).
-    ``index``: "flat" (float32) or "fp16" (half the memory and scan time, fp16-rounded).
-    ``engine``: run the partition and the index builds elsewhere (``partition(...)``,
-    ``build_indexes(kind, dim, parts)``; the Ray engine runs them as tasks)."""
+                 index: str = "flat", ram_budget_mb: float | None = None,
+                 max_submap_size: int | None = None,
+                 rerank_factor: int = DEFAULT_RERANK_FACTOR, engine: Any = None) -> ReferenceMap:
+    """Partition references and build one index per submap (in memory).
+    ``index``: "flat" (float32, exact), "fp16" (exact on fp16-rounded descriptors), "pq"
+    (PQ fast-scan + exact fp16 re-rank) or "auto" (per submap within ``ram_budget_mb``); see
+    maps/indexes.py. ``max_submap_size`` splits larger submaps (maps/balance.py).
+    ``engine``: run the partition and the flat/fp16 index builds elsewhere (``partition(...)``,
+    ``build_indexes(kind, dim, parts)``; the Ray engine runs them as tasks); pq is built here."""
+    check_kind(index)
     part = (engine.partition if engine is not None else make_partition)(
         partition, coords[:, 0], coords[:, 1], clusters, seed)
+    part, groups = split_large(part, coords[:, 0], coords[:, 1], max_submap_size, seed)
     sels = [np.flatnonzero(part.labels == k) for k in range(len(part.names))]
-    if engine is not None:
-        indexes = engine.build_indexes(index, desc.shape[1], [desc[sel] for sel in sels])
-    else:
-        indexes = []
-        for sel in sels:
-            indexes.append(new_index(index, desc.shape[1]))
-            indexes[-1].add(np.ascontiguousarray(desc[sel], dtype=np.float32))
-    submaps = [Submap(name, tuple(float(c) for c in part.centroids[k]),
-                      coords[sels[k]].astype(np.float64), [ids[i] for i in sels[k]], indexes[k])
-               for k, name in enumerate(part.names)]
+    kinds = plan_kinds(index, [len(s) for s in sels], desc.shape[1], ram_budget_mb)
+    remote = None
+    if engine is not None and len(set(kinds)) == 1 and kinds[0] in ("flat", "fp16"):
+        remote = engine.build_indexes(kinds[0], desc.shape[1], [desc[sel] for sel in sels])
+    trained = None
+    if "pq" in kinds:
+        rng = np.random.default_rng(seed)
+        sample = rng.choice(len(desc), min(len(desc), PQ_TRAIN_SAMPLE), replace=False)
+        trained = train_pq(np.asarray(desc[np.sort(sample)], dtype=np.float32))
+    submaps = []
+    for k, name in enumerate(part.names):
+        sel, kind = sels[k], kinds[k]
+        vecs = np.ascontiguousarray(desc[sel], dtype=np.float32)
+        faiss_index = remote[k] if remote is not None else make_index(kind, vecs, trained)
+        rerank = vecs.astype(np.float16) if kind == "pq" else None
+        recall = (measure_recall(faiss_index, kind, rerank, vecs, rerank_factor, seed=seed)
+                  if kind != "flat" else None)
+        submaps.append(Submap(name, tuple(float(c) for c in part.centroids[k]),
+                              coords[sel].astype(np.float64), [ids[i] for i in sel],
+                              faiss_index, kind=kind, rerank=rerank,
+                              group=groups[k] if groups[k] != name else "", recall=recall))
     manifest = {"descriptor": identity, "index": index,
+                "index_params": {"rerank_factor": int(rerank_factor),
+                                 "ram_budget_mb": ram_budget_mb},
                 "partition": {"method": part.method, "params": part.params},
                 "source": dict(extra or {})}
     return ReferenceMap(manifest, submaps, dict(state))
 
 
-INDEX_TYPES = ("flat", "fp16")
+INDEX_TYPES = INDEX_KINDS
+
+
+def plan_kinds(index: str, counts: list[int], dim: int,
+               ram_budget_mb: float | None) -> list[str]:
+    """The index kind of every submap for a requested ``index`` (see maps/indexes.py)."""
+    if index == "auto":
+        return choose_kinds(counts, dim, ram_budget_mb)
+    return [effective_kind(index, c) for c in counts]
 
 
 def new_index(kind: str, dim: int) -> Any:
     """An empty exact L2 index: "flat" = IndexFlatL2, "fp16" = fp16 scalar-quantized."""
     import faiss
 
-    choose(kind, dict.fromkeys(INDEX_TYPES), "index type")
+    choose(kind, dict.fromkeys(("flat", "fp16")), "index type")
     if kind == "flat":
         return faiss.IndexFlatL2(dim)
     return faiss.IndexScalarQuantizer(dim, faiss.ScalarQuantizer.QT_fp16, faiss.METRIC_L2)
@@ -114,7 +145,8 @@ def build_map(images_dir: str | Path, coords_csv: str | Path, out_dir: str | Pat
               descriptor: str = "vlad_rootsift", descriptor_config: Mapping | None = None,
               partition: str = "kmeans", clusters: int = 100, overwrite: bool = False,
               progress: bool = True, seed: int = 0, index: str = "flat",
-              engine: Any = None) -> ReferenceMap:
+              ram_budget_mb: float | None = None, max_submap_size: int | None = None,
+              rerank_factor: int = DEFAULT_RERANK_FACTOR, engine: Any = None) -> ReferenceMap:
     """Build (or resume building) a map folder; see the README "Map format" section.
     ``engine``: describe (and fit), partition and index elsewhere, e.g. on Ray
     (``vlm_vpr_ros.distributed.build``); by default everything runs in this process."""
@@ -123,8 +155,13 @@ def build_map(images_dir: str | Path, coords_csv: str | Path, out_dir: str | Pat
         images_dir = Path(images_dir)
     rows = read_coords_csv(coords_csv)
     desc = create_descriptor(descriptor, descriptor_config)
-    new_index(index, 8)  # validate the name before any work
-    fp = _fingerprint(rows, desc, partition, clusters, index)
+    check_kind(index)  # validate the name before any work
+    if index == "auto" and ram_budget_mb is None:
+        raise MapError("--index auto needs --ram-budget-mb")
+    extra_opts = (ram_budget_mb, max_submap_size, rerank_factor)
+    fp = _fingerprint(rows, desc, partition, clusters,
+                      index if extra_opts == (None, None, DEFAULT_RERANK_FACTOR)
+                      else [index, *extra_opts])
     work = out_dir / ".build"
     if (out_dir / MANIFEST).exists():
         old = json.loads((out_dir / MANIFEST).read_text()).get("source", {}).get("fingerprint")
@@ -164,7 +201,8 @@ def build_map(images_dir: str | Path, coords_csv: str | Path, out_dir: str | Pat
     ref_map = assemble_map(feats[keep], coords, ids, identity, desc.state_arrays(), partition,
                            clusters, seed, extra={"fingerprint": fp, "rows": len(rows),
                                                   "skipped": skipped}, index=index,
-                           engine=engine)
+                           ram_budget_mb=ram_budget_mb, max_submap_size=max_submap_size,
+                           rerank_factor=rerank_factor, engine=engine)
     ref_map.save(out_dir)
     shutil.rmtree(work, ignore_errors=True)
     dt = time.monotonic() - t0

@@ -1,6 +1,10 @@
 """The map folder: versioned ``manifest.json`` + per-submap FAISS indices, coordinates and ids.
 
-Layout::
+New maps are written in format version 2 (memory-mapped, lazily opened submaps, index kinds
+flat/fp16/pq): see :mod:`vlm_vpr_ros.maps.store` and docs/planet_scale.md. Version 1 (below)
+still loads (fully into memory); ``vlm-vpr map upgrade`` converts it.
+
+Version 1 layout::
 
     MAP/manifest.json              format, version, descriptor identity, metric, partition, counts,
                                    submap centroids, size + sha256 of every file
@@ -32,7 +36,8 @@ from vlm_vpr_ros.errors import MapError
 log = logging.getLogger(__name__)
 
 MAP_FORMAT = "vlm_vpr_ros.map"
-MAP_VERSION = 1
+MAP_VERSION = 2  # written; see maps/store.py
+SUPPORTED_VERSIONS = (1, 2)
 METRIC = "squared_l2"
 MANIFEST = "manifest.json"
 #: identity keys that must agree between a map and the query-time descriptor
@@ -87,15 +92,32 @@ def sha256_file(path: Path) -> str:
 # -- the in-memory map ------------------------------------------------------------------------
 @dataclass
 class Submap:
+    """An in-memory submap (built now, or loaded from a v1 map). v2 maps load as
+    :class:`vlm_vpr_ros.maps.store.LazySubmap`, which has the same attributes and methods."""
+
     id: str
     centroid: tuple[float, float]
     coords: np.ndarray  # (n, 2) float64
     ids: list[str]
-    index: Any  # faiss.IndexFlatL2 or fp16 IndexScalarQuantizer
+    index: Any  # faiss.IndexFlatL2, fp16 IndexScalarQuantizer or IndexPQFastScan
+    kind: str = "flat"  # flat | fp16 | pq (maps/indexes.py)
+    rerank: np.ndarray | None = None  # pq: (n, dim) float16 re-rank vectors
+    group: str = ""  # the submap this one was split from (balanced submaps); "" = itself
+    recall: dict | None = None  # measured recall vs exact (approximate kinds)
 
     @property
     def count(self) -> int:
         return len(self.ids)
+
+    def search(self, q: np.ndarray, k: int, factor: int) -> tuple[np.ndarray, np.ndarray]:
+        from vlm_vpr_ros.maps.indexes import search
+
+        return search(self.index, self.kind, self.rerank, q, k, factor)
+
+    def vectors(self) -> np.ndarray:
+        from vlm_vpr_ros.maps.indexes import vectors
+
+        return vectors(self.index, self.kind, self.rerank)
 
 
 class ReferenceMap:
@@ -108,6 +130,11 @@ class ReferenceMap:
         self.descriptor_state = descriptor_state
         self.path = path
         self._by_id = {s.id: i for i, s in enumerate(submaps)}
+        self._groups: dict[str, list[int]] = {}
+        for i, s in enumerate(submaps):
+            self._groups.setdefault(s.group or s.id, []).append(i)
+        #: pq submaps re-rank the top k·rerank_factor PQ candidates exactly (tunable at query time)
+        self.rerank_factor = int(manifest.get("index_params", {}).get("rerank_factor", 8))
 
     # properties
     @property
@@ -133,9 +160,19 @@ class ReferenceMap:
     def submap_index(self, submap_id: str) -> int | None:
         return self._by_id.get(submap_id)
 
+    def group_members(self, group: str) -> list[int]:
+        """Indices of the submaps a (country / cluster) group was split into (balanced maps);
+        ``[i]`` for an unsplit submap, ``[]`` when there is no such group."""
+        return list(self._groups.get(group, []))
+
+    def search_submap(self, i: int, q: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """Top-``k`` (squared L2, row) in submap ``i`` for a (1, dim) float32 query."""
+        return self.submaps[i].search(q, k, self.rerank_factor)
+
     def all_descriptors(self) -> np.ndarray:
-        """Reconstruct all descriptors (submap order) from the flat indices."""
-        return np.concatenate([s.index.reconstruct_n(0, s.index.ntotal) for s in self.submaps])
+        """All descriptors (submap order): reconstructed from flat/fp16 indices, or the fp16
+        re-rank vectors of pq submaps."""
+        return np.concatenate([s.vectors() for s in self.submaps])
 
     def all_coords(self) -> np.ndarray:
         return np.concatenate([s.coords for s in self.submaps])
@@ -151,11 +188,18 @@ class ReferenceMap:
         return assemble_map(self.all_descriptors(), coords, self.all_ids(),
                             dict(self.manifest["descriptor"]), self.descriptor_state,
                             method, clusters, seed, extra=self.manifest.get("source", {}),
-                            index=self.manifest.get("index", "flat"))
+                            index=_single_kind(self))
 
     # persistence
     def save(self, path: str | os.PathLike[str]) -> None:
-        """Write the map folder atomically (files first, manifest last)."""
+        """Write the map folder (format v2) atomically: files first, manifest last."""
+        from vlm_vpr_ros.maps.store import save_map
+
+        path = Path(path)
+        self.manifest, self.path = save_map(self, path), path
+
+    def save_v1(self, path: str | os.PathLike[str]) -> None:
+        """Write format version 1 (flat/fp16 only): kept for compatibility tests and tools."""
         path = Path(path)
         (path / "submaps").mkdir(parents=True, exist_ok=True)
         files: dict[str, dict] = {}
@@ -167,8 +211,8 @@ class ReferenceMap:
             rel = {"index": f"submaps/{s.id}.faiss", "coords": f"submaps/{s.id}.coords.npy",
                    "ids": f"submaps/{s.id}.ids.json"}
             atomic_write_index(path / rel["index"], s.index)
-            atomic_save_npy(path / rel["coords"], s.coords.astype(np.float64))
-            atomic_write_json(path / rel["ids"], s.ids)
+            atomic_save_npy(path / rel["coords"], np.asarray(s.coords, dtype=np.float64))
+            atomic_write_json(path / rel["ids"], list(s.ids))
             files.update({v: {} for v in rel.values()})
             subs.append({"id": s.id, "count": s.count,
                          "centroid": [round(float(c), 7) for c in s.centroid], "files": rel})
@@ -177,21 +221,31 @@ class ReferenceMap:
             files[rel] = {"bytes": p.stat().st_size, "sha256": sha256_file(p)}
         manifest = dict(self.manifest)
         manifest.update({
-            "format": MAP_FORMAT, "version": MAP_VERSION, "software": f"vlm_vpr_ros {__version__}",
+            "format": MAP_FORMAT, "version": 1, "software": f"vlm_vpr_ros {__version__}",
             "metric": METRIC, "n_references": self.n_references, "n_submaps": len(subs),
             "descriptor_state": "descriptor_state.npz" if self.descriptor_state else None,
             "submaps": subs, "files": files,
         })
         atomic_write_json(path / MANIFEST, manifest)
-        self.manifest, self.path = manifest, path
 
     @classmethod
-    def load(cls, path: str | os.PathLike[str], verify: bool = True) -> "ReferenceMap":
-        """Load and validate a map folder; any inconsistency raises MapError saying what."""
+    def load(cls, path: str | os.PathLike[str], verify: bool = False) -> "ReferenceMap":
+        """Open and validate a map folder; any inconsistency raises MapError saying what.
+        v2: manifest + file sizes only, submaps memory-mapped on first use; ``verify`` adds the
+        full sha256 pass (``vlm-vpr map verify``). v1: read into memory (checksums with
+        ``verify``)."""
         from vlm_vpr_ros.map_validate import read_manifest, load_submap, load_state
 
         path = Path(path)
         manifest = read_manifest(path)
+        if manifest["version"] >= 2:
+            from vlm_vpr_ros.maps.store import load_map
+
+            m = load_map(path, manifest, verify)
+            log.info("opened map %s: %d references in %d submaps (%s, %s-D, index %s)", path,
+                     m.n_references, len(m.submaps), manifest["partition"]["method"],
+                     manifest["descriptor"]["dim"], manifest.get("index"))
+            return m
         state = load_state(path, manifest, verify)
         subs = [load_submap(path, manifest, entry, verify) for entry in manifest["submaps"]]
         total = sum(s.count for s in subs)
@@ -201,6 +255,11 @@ class ReferenceMap:
         log.info("loaded map %s: %d references in %d submaps (%s, %s-D)", path, total,
                  len(subs), manifest["partition"]["method"], manifest["descriptor"]["dim"])
         return cls(manifest, subs, state, path)
+
+
+def _single_kind(m: "ReferenceMap") -> str:
+    kinds = {getattr(s, "kind", "flat") for s in m.submaps}
+    return kinds.pop() if len(kinds) == 1 else "fp16"
 
 
 def check_descriptor_identity(map_identity: Mapping[str, Any],

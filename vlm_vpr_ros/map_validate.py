@@ -15,7 +15,7 @@ REQUIRED_KEYS = ("format", "version", "descriptor", "metric", "partition", "n_re
 
 
 def read_manifest(path: Path) -> dict:
-    from vlm_vpr_ros.map_io import MANIFEST, MAP_FORMAT, MAP_VERSION, METRIC
+    from vlm_vpr_ros.map_io import MANIFEST, MAP_FORMAT, METRIC, SUPPORTED_VERSIONS
 
     if not path.is_dir():
         raise MapError(f"map folder not found: {path}")
@@ -33,9 +33,9 @@ def read_manifest(path: Path) -> dict:
         raise MapError(f"{mpath}: manifest lacks {missing}")
     if manifest["format"] != MAP_FORMAT:
         raise MapError(f"{mpath}: format {manifest['format']!r}, expected {MAP_FORMAT!r}")
-    if manifest["version"] != MAP_VERSION:
+    if manifest["version"] not in SUPPORTED_VERSIONS:
         raise MapError(f"{mpath}: map format version {manifest['version']} is not supported "
-                       f"(this software reads version {MAP_VERSION}); rebuild the map")
+                       f"(this software reads versions {SUPPORTED_VERSIONS}); rebuild the map")
     if manifest["metric"] != METRIC:
         raise MapError(f"{mpath}: metric {manifest['metric']!r} unsupported")
     desc = manifest["descriptor"]
@@ -117,4 +117,5 @@ def load_submap(path: Path, manifest: dict, entry: Any, verify: bool):
     if not isinstance(ids, list) or len(ids) != count:
         raise MapError(f"{path}: submap {sid} has {len(ids) if isinstance(ids, list) else '?'} "
                        f"ids, expected {count}")
-    return Submap(sid, centroid, coords.astype(np.float64), [str(i) for i in ids], index)
+    return Submap(sid, centroid, coords.astype(np.float64), [str(i) for i in ids], index,
+                  kind=kind)

@@ -119,7 +119,8 @@ class _Wiring:
         t0 = time.monotonic()
         self.pipeline = LocalizationPipeline.open(
             os.path.expanduser(cfg.map_dir), descriptor=cfg.descriptor or None,
-            localizer=cfg.localizer_config(), descriptor_config=cfg.descriptor_options)
+            localizer=cfg.localizer_config(), descriptor_config=cfg.descriptor_options,
+            verify=cfg.verify_map)
         self._provider = create_prior_provider(cfg.prior_provider, cfg.prior)
         self.policy = FixPolicy(cfg.fallback_status, cfg.fallback_min_sigma_m, cfg.altitude_m,
                                 cfg.altitude_sigma_m)

@@ -16,6 +16,8 @@ from vlm_vpr_ros.geodesy import haversine_km, latlon_to_unit, spherical_mean, un
 log = logging.getLogger(__name__)
 
 PARTITION_METHODS = ("country", "kmeans", "none")
+#: K-means on more positions than this is fitted on a random sample of this many
+FIT_MAX = 200_000
 
 
 @dataclass
@@ -61,14 +63,20 @@ def partition_kmeans(lat: np.ndarray, lon: np.ndarray, clusters: int = 100,
     from sklearn.cluster import KMeans
 
     xyz = latlon_to_unit(lat, lon)
-    n_distinct = len(np.unique(np.round(xyz, 9), axis=0))
+    # planet-scale maps: fit on a sample of FIT_MAX positions, then assign every position
+    fit = xyz
+    if len(xyz) > FIT_MAX:
+        fit = xyz[np.random.default_rng(seed).choice(len(xyz), FIT_MAX, replace=False)]
+    n_distinct = len(np.unique(np.round(fit, 9), axis=0))
     k = max(1, min(int(clusters), n_distinct))
     if k < clusters:
         log.info("kmeans: K clamped from %d to %d (distinct positions)", clusters, k)
-    km = KMeans(n_clusters=k, n_init=4, random_state=seed).fit(xyz)
-    used = np.unique(km.labels_)
-    remap = {old: new for new, old in enumerate(used)}
-    labels = np.array([remap[x] for x in km.labels_], dtype=np.int64)
+    km = KMeans(n_clusters=k, n_init=4, random_state=seed).fit(fit)
+    raw = km.labels_ if fit is xyz else km.predict(xyz)
+    used = np.unique(raw)
+    remap = np.full(k, -1, dtype=np.int64)
+    remap[used] = np.arange(len(used))
+    labels = remap[raw].astype(np.int64)
     cla, clo = unit_to_latlon(km.cluster_centers_[used])
     names = [f"k{i:03d}" for i in range(len(used))]
     return Partition("kmeans", labels, names, np.stack([cla, clo], 1),

@@ -59,7 +59,9 @@ class LocalizationPipeline:
     def open(cls, map_dir: str | os.PathLike[str], descriptor: str | None = None,
              localizer: LocalizerConfig | Mapping[str, Any] | None = None,
              descriptor_config: Mapping[str, Any] | None = None,
-             verify: bool = True) -> "LocalizationPipeline":
+             verify: bool = False) -> "LocalizationPipeline":
+        """``verify``: also check every file's sha256 (otherwise the manifest and file sizes
+        are checked; ``vlm-vpr map verify`` does the full pass offline)."""
         ref_map = ReferenceMap.load(map_dir, verify=verify)
         desc = descriptor_for_map(ref_map, descriptor, descriptor_config)
         if not isinstance(localizer, LocalizerConfig):

@@ -269,7 +269,11 @@ class QueryRuntime:
         t2 = time.monotonic()
         prior = self._await_prior(future, t1)
         t3 = time.monotonic()
-        hyp = pipe.localize_descriptor(desc, prior)
+        try:
+            hyp = pipe.localize_descriptor(desc, prior)
+        except VlmVprError as exc:  # e.g. a map file truncated after start (maps/store.py)
+            out.error = f"localization failed: {exc}"
+            return
         t4 = time.monotonic()
         out.hypothesis = hyp
         out.timings_ms = {

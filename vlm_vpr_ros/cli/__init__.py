@@ -17,7 +17,7 @@ _COMMAND_MODULES = (
     "vlm_vpr_ros.cli.weights",   # weights fetch / list (deep VPR models)
     "vlm_vpr_ros.cli.priors",    # priors score / ask (VLM)
     "vlm_vpr_ros.cli.bag",       # bag make, replay, evaluate-bag, ablate
-    "vlm_vpr_ros.cli.map",       # map add / remove
+    "vlm_vpr_ros.cli.map",       # map add / remove / info / verify / upgrade
     "vlm_vpr_ros.cli.distributed",  # describe (descriptor shards; local or Ray engine)
 )
 

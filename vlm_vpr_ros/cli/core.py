@@ -11,6 +11,7 @@ from vlm_vpr_ros.cli.common import (add_descriptor_option_args, add_localizer_ar
                                     add_prior_args, descriptor_options, localizer_config,
                                     make_prior_provider, write_csv_atomic)
 from vlm_vpr_ros.cli.distributed import add_engine_args, cmd_build_map_ray, engine_options
+from vlm_vpr_ros.errors import ConfigError, DataError, MapError
 
 log = logging.getLogger(__name__)
 
@@ -21,8 +22,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "submaps and write FAISS indices. Resumable: re-running "
                                    "after an interruption continues where it stopped. With "
                                    "--bag: a teach run (camera + NavSatFix rosbag2 bag) gives "
-                                   "the references (see docs/teach.md).")
+                                   "the references (see docs/teach.md). With --descriptors: "
+                                   "precomputed descriptors, out of core (docs/planet_scale.md).")
     p.add_argument("--images", metavar="DIR", help="folder of reference images")
+    p.add_argument("--descriptors", metavar="SRC",
+                   help="precomputed descriptors instead of images: an (n, dim) float32 .npy "
+                        "aligned with --coords, or a folder of .npy(+.ids.txt)/.parquet "
+                        "shards (docs/planet_scale.md); out-of-core, no model loaded")
     p.add_argument("--coords", metavar="CSV",
                    help="CSV with columns file (relative to DIR), lat, lon")
     add_teach_args(p)
@@ -33,9 +39,18 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="submaps: one per country or K-means clusters of positions")
     p.add_argument("--clusters", type=int, default=100, metavar="K",
                    help="K for --partition kmeans (clamped to the data; default 100)")
-    p.add_argument("--index", choices=["flat", "fp16"], default="flat",
+    p.add_argument("--index", choices=["flat", "fp16", "pq", "auto"], default=None,
                    help="flat: exact float32; fp16: half the memory and query time "
-                        "(descriptors rounded to float16)")
+                        "(descriptors rounded to float16); pq: PQ fast-scan codes in RAM + "
+                        "exact re-rank from fp16 vectors on disk (planet scale); auto: per "
+                        "submap within --ram-budget-mb (default: flat, pq with --descriptors)")
+    p.add_argument("--ram-budget-mb", type=float, default=None, metavar="MB",
+                   help="RAM budget of the searched vectors for --index auto")
+    p.add_argument("--max-submap-size", type=int, default=None, metavar="N",
+                   help="split submaps larger than N references into K-means sub-clusters "
+                        "(bounds query time; default: no split)")
+    p.add_argument("--rerank-factor", type=int, default=8, metavar="F",
+                   help="pq: re-rank the top k*F PQ candidates exactly (default 8)")
     p.add_argument("--overwrite", action="store_true", help="replace a different existing map")
     add_descriptor_option_args(p)
     add_engine_args(p)
@@ -45,7 +60,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description="For each query: ask the prior, pick the submap, retrieve "
                                    "the top-p references, re-rank by distance to the prior.")
     p.add_argument("--map", required=True, metavar="MAP")
-    p.add_argument("--images", required=True, metavar="DIR", help="folder of query images")
+    p.add_argument("--images", metavar="DIR", help="folder of query images (optional with "
+                   "--query-descriptors: then only given to a prior that needs pixels)")
+    p.add_argument("--query-descriptors", metavar="Q.npy", default=None,
+                   help="precomputed (n, dim) query descriptors, rows aligned with --queries: "
+                        "no descriptor model or weights are loaded")
     p.add_argument("--queries", required=True, metavar="CSV", help="CSV with a 'file' column")
     p.add_argument("--out", required=True, metavar="RESULTS.csv")
     p.add_argument("--descriptor", default=None, metavar="NAME",
@@ -99,9 +118,16 @@ def teach_config(args: argparse.Namespace):
 
 
 def check_source_args(args: argparse.Namespace) -> None:
-    """Exactly one reference source: --bag, or --images with --coords."""
+    """Exactly one reference source: --bag, or --images (or --descriptors) with --coords."""
     from vlm_vpr_ros.errors import ConfigError
 
+    descriptors = getattr(args, "descriptors", None)
+    if descriptors and (args.images or args.bag):
+        raise ConfigError("give --descriptors SRC or --images DIR or --bag BAG, not several")
+    if descriptors:
+        if not args.coords:
+            raise ConfigError("--descriptors needs --coords CSV (file, lat, lon per row)")
+        return
     if args.bag and (args.images or args.coords):
         raise ConfigError("give either --bag or --images/--coords, not both")
     if not args.bag and not (args.images and args.coords):
@@ -121,19 +147,39 @@ def cmd_build_map(args: argparse.Namespace) -> int:
         m, res = build_map_from_bag(
             args.bag, args.out, teach_config(args), overwrite=args.overwrite,
             descriptor=args.descriptor, descriptor_config=descriptor_options(args),
-            partition=args.partition, clusters=args.clusters, index=args.index)
+            partition=args.partition, clusters=args.clusters, index=args.index or "flat")
         print(res.describe())
         print(f"map {args.out}: {m.n_references} references, {len(m.submaps)} submaps "
               f"({m.partition_method}), descriptor {m.descriptor_identity['name']} "
               f"{m.dim}-D, images stored in the map")
         return 0
+    sizing = {"ram_budget_mb": args.ram_budget_mb, "max_submap_size": args.max_submap_size,
+              "rerank_factor": args.rerank_factor}
+    if args.descriptors:
+        from vlm_vpr_ros.maps.build import build_from_descriptors
+
+        engine_options(args)  # Ray-only options without --engine ray are errors
+        if args.engine == "ray":
+            raise ConfigError("--descriptors builds out of core in this process; --engine ray "
+                              "is for images (describe them with 'vlm-vpr describe')")
+        m = build_from_descriptors(args.descriptors, args.coords, args.out, args.descriptor,
+                                   descriptor_options(args), partition=args.partition,
+                                   clusters=args.clusters, overwrite=args.overwrite,
+                                   index=args.index or "pq", **sizing)
+        skipped = len(m.manifest["source"].get("skipped", []))
+        print(f"map {args.out}: {m.n_references} references ({skipped} skipped), "
+              f"{len(m.submaps)} submaps ({m.partition_method}), index {m.manifest['index']}, "
+              f"descriptor {m.descriptor_identity['name']} {m.dim}-D")
+        return 0
+    args.index = args.index or "flat"
     if args.engine == "ray":
         m = cmd_build_map_ray(args)
     else:
         engine_options(args)  # Ray-only options without --engine ray are errors
         m = build_map(args.images, args.coords, args.out, descriptor=args.descriptor,
                       descriptor_config=descriptor_options(args), partition=args.partition,
-                      clusters=args.clusters, overwrite=args.overwrite, index=args.index)
+                      clusters=args.clusters, overwrite=args.overwrite, index=args.index,
+                      **sizing)
     print(f"map {args.out}: {m.n_references} references, {len(m.submaps)} submaps "
           f"({m.partition_method}), descriptor {m.descriptor_identity['name']} "
           f"{m.dim}-D")
@@ -141,11 +187,16 @@ def cmd_build_map(args: argparse.Namespace) -> int:
 
 
 def cmd_localize(args: argparse.Namespace) -> int:
-    from vlm_vpr_ros.batch import RESULT_FIELDS, localize_files
     from vlm_vpr_ros.map_build import read_file_column
-    from vlm_vpr_ros.pipeline import LocalizationPipeline
 
     files = read_file_column(args.queries)
+    if args.query_descriptors:
+        return _localize_descriptors(args, files)
+    if not args.images:
+        raise DataError("localize needs --images DIR (or --query-descriptors Q.npy)")
+    from vlm_vpr_ros.batch import RESULT_FIELDS, localize_files
+    from vlm_vpr_ros.pipeline import LocalizationPipeline
+
     pipe = LocalizationPipeline.open(args.map, descriptor=args.descriptor,
                                      localizer=localizer_config(args),
                                      descriptor_config=descriptor_options(args))
@@ -155,6 +206,34 @@ def cmd_localize(args: argparse.Namespace) -> int:
     try:
         rows = list(tqdm(localize_files(pipe, provider, args.images, files, args.prior_timeout),
                          total=len(files), desc="localize", unit="img", disable=None))
+    finally:
+        provider.close()
+    write_csv_atomic(args.out, RESULT_FIELDS, rows)
+    flagged = sum(1 for r in rows if r.get("flags"))
+    print(f"{len(rows)} queries localized -> {args.out} ({flagged} with flags)")
+    return 0
+
+
+def _localize_descriptors(args: argparse.Namespace, files: list[str]) -> int:
+    from tqdm import tqdm
+
+    from vlm_vpr_ros.batch import RESULT_FIELDS
+    from vlm_vpr_ros.localizer import Localizer
+    from vlm_vpr_ros.map_io import ReferenceMap
+    from vlm_vpr_ros.maps.query import localize_descriptors, open_query_descriptors
+
+    ref_map = ReferenceMap.load(args.map)
+    if args.descriptor and args.descriptor != ref_map.descriptor_identity["name"]:
+        raise MapError(f"the map at {args.map} was built with descriptor "
+                       f"{ref_map.descriptor_identity['name']!r}, but {args.descriptor!r} was "
+                       "requested")
+    descs = open_query_descriptors(args.query_descriptors, len(files), ref_map.dim)
+    localizer = Localizer(ref_map, localizer_config(args))
+    provider = make_prior_provider(args)
+    try:
+        rows = list(tqdm(localize_descriptors(localizer, provider, files, descs, args.images,
+                                              args.prior_timeout),
+                         total=len(files), desc="localize", unit="query", disable=None))
     finally:
         provider.close()
     write_csv_atomic(args.out, RESULT_FIELDS, rows)

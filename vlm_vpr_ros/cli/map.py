@@ -1,11 +1,14 @@
-"""``vlm-vpr map``: edit an existing map folder in place (``add``, ``remove``)."""
+"""``vlm-vpr map``: edit a map folder in place (``add``, ``remove``; docs/teach.md), inspect,
+verify and upgrade it (``info``, ``verify``, ``upgrade``; docs/planet_scale.md)."""
 
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import os
 import shutil
+import sys
 from pathlib import Path
 
 from vlm_vpr_ros.cli.common import add_descriptor_option_args, descriptor_options
@@ -15,7 +18,7 @@ log = logging.getLogger(__name__)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("map", help="add references to or remove them from an existing map")
+    p = sub.add_parser("map", help="add/remove references; info, verify or upgrade a map")
     msub = p.add_subparsers(dest="map_command", metavar="ACTION")
     msub.required = True
 
@@ -47,6 +50,29 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "'file' column")
     r.set_defaults(func=cmd_map_remove)
 
+
+    q = msub.add_parser("info", help="counts, submap sizes and index kinds, disk and RAM",
+                        description="Reads only the manifest and file sizes (fast at any scale).")
+    q.add_argument("map", metavar="MAP")
+    q.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    q.set_defaults(func=cmd_info)
+
+    q = msub.add_parser("verify", help="check the sha256 of every file against the manifest",
+                        description="The full integrity pass that opening a map skips "
+                                    "(opening only checks the manifest and file sizes).")
+    q.add_argument("map", metavar="MAP")
+    q.set_defaults(func=cmd_verify)
+
+    q = msub.add_parser("upgrade", help="convert a map to format v2 (optionally another index)",
+                        description="Writes a new v2 map folder beside the old one (never over "
+                                    "it): memory-mapped, lazily opened submaps.")
+    q.add_argument("map", metavar="MAP")
+    q.add_argument("--out", required=True, metavar="NEW_MAP", help="folder to write (must not "
+                   "exist)")
+    q.add_argument("--index", choices=["flat", "fp16", "pq"], default=None,
+                   help="index kind of the new map (default: keep the old one)")
+    q.add_argument("--rerank-factor", type=int, default=None, metavar="F")
+    q.set_defaults(func=cmd_upgrade)
 
 def cmd_map_add(args: argparse.Namespace) -> int:
     from vlm_vpr_ros.map_build import read_coords_csv
@@ -85,4 +111,107 @@ def cmd_map_remove(args: argparse.Namespace) -> int:
     ids = read_ids_file(args.ids)
     res = remove_references(args.map, ids, source={"ids_file": str(args.ids)})
     print(res.describe())
+    return 0
+
+
+def map_info(path: str | Path) -> dict:
+    """Summary of a map from its manifest and file sizes (no index is read)."""
+    from vlm_vpr_ros.maps.indexes import ram_bytes
+    from vlm_vpr_ros.map_validate import read_manifest
+
+    path = Path(path)
+    man = read_manifest(path)
+    dim = int(man["descriptor"]["dim"])
+    default_kind = man.get("index", "flat")
+    subs = []
+    for e in man["submaps"]:
+        kind = e.get("kind", default_kind)
+        disk = sum(int(man["files"].get(r, {}).get("bytes", 0)) for r in e["files"].values())
+        subs.append({"id": e["id"], "group": e.get("group", e["id"]), "count": int(e["count"]),
+                     "kind": kind, "disk_bytes": disk,
+                     "ram_bytes": ram_bytes(kind, int(e["count"]), dim),
+                     "recall": e.get("recall")})
+    counts = [s["count"] for s in subs] or [0]
+    kinds: dict[str, int] = {}
+    for s in subs:
+        kinds[s["kind"]] = kinds.get(s["kind"], 0) + 1
+    return {
+        "path": str(path), "version": man["version"], "descriptor": man["descriptor"]["name"],
+        "dim": dim, "n_references": man["n_references"], "n_submaps": len(subs),
+        "partition": man["partition"], "index": man.get("index", "flat"),
+        "index_kinds": kinds, "index_params": man.get("index_params", {}),
+        "submap_size": {"min": min(counts), "median": sorted(counts)[len(counts) // 2],
+                        "max": max(counts)},
+        "disk_bytes": sum(int(m.get("bytes", 0)) for m in man["files"].values()),
+        "expected_ram_bytes": sum(s["ram_bytes"] for s in subs) if man["version"] >= 2
+        else sum(s["disk_bytes"] for s in subs),
+        "skipped": len(man.get("source", {}).get("skipped", [])),
+        "submaps": subs,
+    }
+
+
+def _mb(b: int) -> str:
+    return f"{b / 2 ** 20:,.1f} MiB"
+
+
+def cmd_info(args: argparse.Namespace) -> int:
+    info = map_info(args.map)
+    if args.json:
+        json.dump(info, sys.stdout)
+        sys.stdout.write("\n")
+        return 0
+    s = info["submap_size"]
+    print(f"map {info['path']} (format v{info['version']})")
+    print(f"  descriptor   {info['descriptor']} {info['dim']}-D")
+    print(f"  references   {info['n_references']:,} ({info['skipped']} skipped at build)")
+    print(f"  submaps      {info['n_submaps']} ({info['partition']['method']}); size min "
+          f"{s['min']:,} / median {s['median']:,} / max {s['max']:,}")
+    kinds = ", ".join(f"{k}: {n}" for k, n in sorted(info["index_kinds"].items()))
+    print(f"  index        {info['index']} ({kinds}); "
+          f"rerank_factor {info['index_params'].get('rerank_factor', '-')}")
+    print(f"  on disk      {_mb(info['disk_bytes'])}")
+    print(f"  RAM (hot)    {_mb(info['expected_ram_bytes'])} when every submap has been "
+          "searched" + (" (v1: loaded whole)" if info["version"] < 2 else ""))
+    print(f"  {'submap':<14}{'group':<10}{'refs':>10}  {'kind':<5}{'disk':>14}{'RAM':>14}"
+          f"  recall@1/@50")
+    for sub in info["submaps"]:
+        r = sub["recall"]
+        rec = f"{r['recall_at_1']:.3f}/{r['recall_at_50']:.3f}" if r else "exact"
+        print(f"  {sub['id']:<14}{sub['group']:<10}{sub['count']:>10,}  {sub['kind']:<5}"
+              f"{_mb(sub['disk_bytes']):>14}{_mb(sub['ram_bytes']):>14}  {rec}")
+    return 0
+
+
+def cmd_verify(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from vlm_vpr_ros.map_validate import read_manifest
+    from vlm_vpr_ros.maps.store import verify_map
+
+    path = Path(args.map)
+    man = read_manifest(path)
+    total = sum(int(m.get("bytes", 0)) for m in man["files"].values())
+    with tqdm(total=len(man["files"]), desc="verify", unit="file", disable=None) as bar:
+        checked = verify_map(path, man, progress=lambda rel: bar.update(1))
+    print(f"map {path}: OK ({len(checked)} files, {_mb(total)}, sha256 match the manifest)")
+    return 0
+
+
+def cmd_upgrade(args: argparse.Namespace) -> int:
+    from vlm_vpr_ros.errors import MapError
+    from vlm_vpr_ros.map_io import ReferenceMap
+    from vlm_vpr_ros.maps.build import convert_map
+
+    out = Path(args.out)
+    if out.exists():
+        raise MapError(f"{out} exists; upgrade writes a new folder beside the old map")
+    old = ReferenceMap.load(args.map, verify=True)
+    kind = args.index or old.manifest.get("index", "flat")
+    new = convert_map(old, "pq" if kind == "auto" else kind,
+                      args.rerank_factor or old.rerank_factor)
+    tmp = out.with_name(f".{out.name}.tmp")
+    new.save(tmp)
+    tmp.rename(out)
+    print(f"map {args.out}: v2, {new.n_references} references, {len(new.submaps)} submaps, "
+          f"index {kind} (from {args.map}, format v{old.manifest['version']})")
     return 0

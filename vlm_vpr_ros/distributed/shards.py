@@ -157,34 +157,13 @@ def read_shards(folder: str | Path, ids: Sequence[str]) -> tuple[np.ndarray, np.
     """Descriptors of a finished shard folder aligned with ``ids`` (the CSV's order).
 
     Returns ``(feats (n, dim) float32, ok (n,) bool)``; rows without a descriptor are zero and
-    not ok. Private stand-in for the ``build-map --descriptors`` reader of issue 11 (same
-    contract: ``.npy`` shards in name order with ``.ids.txt`` sidecars, matched by id).
+    not ok. Delegates to the one reader of the descriptor-source contract
+    (:mod:`vlm_vpr_ros.maps.sources`, issue 11); its errors are raised as MapError here.
     """
-    folder = Path(folder)
-    pos = {i: k for k, i in enumerate(ids)}
-    files = sorted(folder.glob("*.npy"))
-    feats: np.ndarray | None = None
-    ok = np.zeros(len(ids), bool)
-    for f in files:
-        arr = np.load(f, allow_pickle=False)
-        side = f.with_name(f"{f.stem}.ids.txt")
-        if not side.exists():
-            raise MapError(f"{f}: no {side.name} beside it")
-        shard_ids = side.read_text(encoding="utf-8").splitlines()
-        if arr.ndim != 2 or arr.dtype != np.float32 or len(arr) != len(shard_ids):
-            raise MapError(f"{f}: expected ({len(shard_ids)}, dim) float32, got {arr.shape} "
-                           f"{arr.dtype}")
-        if feats is None:
-            feats = np.zeros((len(ids), arr.shape[1]), np.float32)
-        elif arr.shape[1] != feats.shape[1]:
-            raise MapError(f"{f}: dim {arr.shape[1]}, other shards {feats.shape[1]}")
-        for row, ref in zip(arr, shard_ids):
-            k = pos.get(ref)
-            if k is None:
-                raise MapError(f"{f}: id {ref!r} is not in the coordinates CSV")
-            if ok[k]:
-                raise MapError(f"{f}: id {ref!r} appears twice")
-            feats[k], ok[k] = row, True
-    if feats is None:
-        raise MapError(f"{folder}: no descriptor shards")
-    return feats, ok
+    from vlm_vpr_ros.errors import DataError
+    from vlm_vpr_ros.maps.sources import open_source, read_aligned
+
+    try:
+        return read_aligned(open_source(folder), list(ids))
+    except DataError as exc:
+        raise MapError(str(exc)) from None

@@ -1,0 +1,181 @@
+"""Index kinds of a submap and their search: exact float32, exact fp16, and two-stage PQ.
+
+``flat``  IndexFlatL2: exact float32 (4·dim bytes per reference, memory-mapped).
+``fp16``  IndexScalarQuantizer(QT_fp16): exact on fp16-rounded vectors (2·dim bytes, mmap'd).
+``pq``    IndexPQFastScan codes in RAM (dim/4 bytes: PQ{dim/2}x4fs) select the top
+          ``k·rerank_factor`` references, then the exact squared L2 to their fp16 vectors (a
+          memory-mapped ``.f16.npy`` that stays on disk) re-ranks them and keeps the top ``k``.
+``auto``  (build option only) picks one of the three per submap from a RAM budget.
+
+One PQ codebook is trained per map on a sample of all references and shared by every pq submap
+(training per submap would cost seconds each; the codebook is tiny).
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import numpy as np
+
+from vlm_vpr_ros.config import choose
+from vlm_vpr_ros.errors import MapError
+
+log = logging.getLogger(__name__)
+
+INDEX_KINDS = ("flat", "fp16", "pq", "auto")
+SUBMAP_KINDS = ("flat", "fp16", "pq")
+DEFAULT_RERANK_FACTOR = 8
+#: a pq submap smaller than this is stored fp16 instead (a scan is already cheap there)
+PQ_MIN_REFS = 1024
+PQ_TRAIN_SAMPLE = 32768
+
+
+def check_kind(kind: str, allowed: tuple[str, ...] = INDEX_KINDS) -> str:
+    return choose(kind, dict.fromkeys(allowed), "index type")
+
+
+def pq_m(dim: int) -> int:
+    """Sub-quantizers of the PQ codes: 2 dimensions each (4 bits) when dim is even."""
+    return dim // 2 if dim % 2 == 0 else dim
+
+
+def pq_factory(dim: int) -> str:
+    return f"PQ{pq_m(dim)}x4fs"
+
+
+def ram_bytes(kind: str, n: int, dim: int) -> int:
+    """Bytes a submap keeps hot while it is searched (what ``auto`` budgets and ``map info``
+    reports): a flat/fp16 scan touches every vector; pq keeps only its codes in RAM."""
+    if kind == "flat":
+        return n * dim * 4
+    if kind == "fp16":
+        return n * dim * 2
+    return n * ((pq_m(dim) + 1) // 2)
+
+
+def disk_bytes(kind: str, n: int, dim: int) -> int:
+    """Approximate bytes on disk of a submap's vectors (index + re-rank file)."""
+    return {"flat": n * dim * 4, "fp16": n * dim * 2}.get(kind, n * dim * 2 + ram_bytes(
+        "pq", n, dim))
+
+
+def effective_kind(kind: str, n: int) -> str:
+    """What a requested kind becomes for a submap of ``n`` references."""
+    return "fp16" if kind == "pq" and n < PQ_MIN_REFS else kind
+
+
+def choose_kinds(counts: list[int], dim: int, budget_mb: float | None) -> list[str]:
+    """``auto``: the most exact kind per submap such that the sum of :func:`ram_bytes` fits
+    ``budget_mb``; the largest submaps are downgraded first (flat → fp16 → pq)."""
+    kinds = ["flat"] * len(counts)
+    if budget_mb is None:
+        raise MapError("--index auto needs --ram-budget-mb")
+    budget = float(budget_mb) * 2 ** 20
+    order = sorted(range(len(counts)), key=lambda i: -counts[i])
+    for target in ("fp16", "pq"):
+        for i in order:
+            if sum(ram_bytes(k, c, dim) for k, c in zip(kinds, counts)) <= budget:
+                return [effective_kind(k, c) for k, c in zip(kinds, counts)]
+            kinds[i] = target
+    total = sum(ram_bytes(k, c, dim) for k, c in zip(kinds, counts))
+    if total > budget:
+        log.warning("auto index: even pq everywhere needs %.0f MB, more than the %.0f MB budget",
+                    total / 2 ** 20, budget / 2 ** 20)
+    return [effective_kind(k, c) for k, c in zip(kinds, counts)]
+
+
+def train_pq(sample: np.ndarray) -> Any:
+    """A trained, empty PQ fast-scan index (the map's shared codebook)."""
+    import faiss
+
+    sample = np.ascontiguousarray(sample, dtype=np.float32)
+    index = faiss.index_factory(sample.shape[1], pq_factory(sample.shape[1]))
+    # M tiny 16-centroid k-means: OpenMP threads only add overhead (10x on a busy 2-core box)
+    threads = faiss.omp_get_max_threads()
+    faiss.omp_set_num_threads(1)
+    try:
+        index.train(sample)
+    finally:
+        faiss.omp_set_num_threads(threads)
+    return index
+
+
+def make_index(kind: str, vecs: np.ndarray, trained_pq: Any = None) -> Any:
+    """A filled index of ``kind`` over ``vecs`` (float32, (n, dim))."""
+    import faiss
+
+    dim = vecs.shape[1]
+    if kind == "flat":
+        index = faiss.IndexFlatL2(dim)
+    elif kind == "fp16":
+        index = faiss.IndexScalarQuantizer(dim, faiss.ScalarQuantizer.QT_fp16, faiss.METRIC_L2)
+    elif kind == "pq":
+        index = faiss.clone_index(trained_pq) if trained_pq is not None else train_pq(vecs)
+    else:
+        raise MapError(f"unknown submap index kind {kind!r}")
+    if len(vecs):
+        index.add(np.ascontiguousarray(vecs, dtype=np.float32))
+    return index
+
+
+def index_class(kind: str) -> type:
+    import faiss
+
+    return {"flat": faiss.IndexFlatL2, "fp16": faiss.IndexScalarQuantizer,
+            "pq": faiss.IndexPQFastScan}[kind]
+
+
+def search(index: Any, kind: str, rerank: np.ndarray | None, q: np.ndarray, k: int,
+           factor: int = DEFAULT_RERANK_FACTOR) -> tuple[np.ndarray, np.ndarray]:
+    """Top-``k`` (squared L2, row) of one (1, dim) float32 query in one submap, best first."""
+    n = index.ntotal
+    k = min(k, n)
+    if k <= 0:
+        return np.zeros(0, np.float32), np.zeros(0, np.int64)
+    if kind != "pq":
+        dist, idx = index.search(q, k)
+        keep = idx[0] >= 0
+        return dist[0][keep], idx[0][keep]
+    kk = min(n, k * max(1, int(factor)))
+    _, idx = index.search(q, kk)
+    rows = np.sort(idx[0][idx[0] >= 0])
+    vecs = np.asarray(rerank[rows], dtype=np.float32)
+    diff = vecs - q
+    dist = np.einsum("ij,ij->i", diff, diff)
+    order = np.argsort(dist, kind="stable")[:k]
+    return dist[order], rows[order]
+
+
+def vectors(index: Any, kind: str, rerank: np.ndarray | None) -> np.ndarray:
+    """All descriptors of a submap as float32 (pq: from its fp16 re-rank vectors)."""
+    if kind == "pq":
+        return np.asarray(rerank, dtype=np.float32)
+    return index.reconstruct_n(0, index.ntotal)
+
+
+def measure_recall(index: Any, kind: str, rerank: np.ndarray | None, vecs: np.ndarray,
+                   factor: int = DEFAULT_RERANK_FACTOR, n_queries: int = 32,
+                   seed: int = 0) -> dict[str, float]:
+    """Recall@1 and @50 of the submap's search vs exact float32 brute force, for queries that
+    are references displaced by half the distance to another reference (near-duplicates
+    would make every index look perfect)."""
+    n = len(vecs)
+    if n < 2:
+        return {"recall_at_1": 1.0, "recall_at_50": 1.0, "queries": 0}
+    rng = np.random.default_rng(seed)
+    a, b = rng.integers(0, n, n_queries), rng.integers(0, n, n_queries)
+    noise = rng.normal(size=(n_queries, vecs.shape[1])).astype(np.float32)
+    noise *= (0.5 * np.linalg.norm(vecs[a] - vecs[b], axis=1)
+              / np.maximum(np.linalg.norm(noise, axis=1), 1e-12))[:, None]
+    qs = (vecs[a] + noise).astype(np.float32)
+    k = min(50, n)
+    r1 = r50 = 0.0
+    norms = np.einsum("ij,ij->i", vecs, vecs)
+    for q in qs:
+        exact = np.argsort(norms - 2.0 * vecs @ q, kind="stable")[:k]
+        _, got = search(index, kind, rerank, q[None, :], k, factor)
+        r1 += float(len(got) > 0 and got[0] == exact[0])
+        r50 += len(set(got.tolist()) & set(exact.tolist())) / k
+    return {"recall_at_1": round(r1 / n_queries, 4), "recall_at_50": round(r50 / n_queries, 4),
+            "queries": int(n_queries)}

@@ -1,0 +1,371 @@
+"""Map format v2 on disk: memory-mapped arrays, submaps opened lazily, sizes checked at start.
+
+Layout (``manifest.json`` is written last; every file is written to a temporary name and moved
+into place, so a folder with a manifest is complete)::
+
+    MAP/manifest.json            version 2: descriptor identity, partition, index kinds, submaps
+                                 (id, group, count, centroid, kind, measured recall, files),
+                                 bytes + sha256 of every file
+    MAP/descriptor_state.npz     fitted descriptor state, if any (no pickle)
+    MAP/submaps/<id>.faiss       flat / fp16: read memory-mapped; pq: fast-scan codes (in RAM)
+    MAP/submaps/<id>.f16.npy     pq only: (n, dim) float16 re-rank vectors (memory-mapped)
+    MAP/submaps/<id>.coords.npy  (n, 2) float64 lat/lon (memory-mapped)
+    MAP/submaps/<id>.ids.npy     (n,) fixed-width UTF-8 bytes ``S<w>`` (memory-mapped)
+
+Opening a map reads the manifest and ``stat``s every file (sizes must match); no file is read.
+A submap is opened on first use (sizes checked again before mapping). A file truncated while the
+map is open would make the next page access raise SIGBUS (a crash Python cannot catch), so every
+search first compares the sizes of the submap's files with the manifest (a few ``stat`` calls)
+and raises :class:`MapError` instead. The full sha256 pass is :func:`verify_map`
+(``vlm-vpr map verify``, node parameter ``verify_map``).
+"""
+
+from __future__ import annotations
+
+import logging
+import mmap
+import os
+import threading
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+
+from vlm_vpr_ros.errors import MapError
+from vlm_vpr_ros.maps import indexes
+
+log = logging.getLogger(__name__)
+
+VERSION = 2
+
+
+# -- writing ----------------------------------------------------------------------------------
+def _tmp(path: Path) -> Path:
+    return path.with_name(f".{path.name}.tmp{os.getpid()}")
+
+
+def _fsync_replace(tmp: Path, path: Path) -> None:
+    with open(tmp, "rb+") as fh:
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+def save_npy(path: Path, arr: np.ndarray) -> None:
+    """``np.save`` to a temporary name, fsync, rename (no in-memory copy of the file)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = _tmp(path)
+    with open(tmp, "wb") as fh:
+        np.save(fh, np.ascontiguousarray(arr), allow_pickle=False)
+    _fsync_replace(tmp, path)
+
+
+def save_index(path: Path, index: Any) -> None:
+    import faiss
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = _tmp(path)
+    faiss.write_index(index, str(tmp))
+    _fsync_replace(tmp, path)
+
+
+def encode_ids(ids: list[str]) -> np.ndarray:
+    """Reference ids as one fixed-width UTF-8 array (width = the longest id of the submap)."""
+    raw = [str(i).encode("utf-8") for i in ids]
+    if any(b"\x00" in r for r in raw):
+        raise MapError("reference ids must not contain NUL characters")
+    width = max([1] + [len(r) for r in raw])
+    return np.array(raw, dtype=f"S{width}")
+
+
+def write_submap(root: Path, sid: str, kind: str, index: Any, coords: np.ndarray,
+                 ids: list[str] | np.ndarray, rerank16: np.ndarray | None) -> dict[str, str]:
+    """Write one submap's files under ``root/submaps``; returns {role: relative path}."""
+    rel = {"index": f"submaps/{sid}.faiss", "coords": f"submaps/{sid}.coords.npy",
+           "ids": f"submaps/{sid}.ids.npy"}
+    save_index(root / rel["index"], index)
+    save_npy(root / rel["coords"], np.asarray(coords, dtype=np.float64).reshape(-1, 2))
+    save_npy(root / rel["ids"], ids if isinstance(ids, np.ndarray) else encode_ids(ids))
+    if kind == "pq":
+        rel["vectors"] = f"submaps/{sid}.f16.npy"
+        save_npy(root / rel["vectors"], np.asarray(rerank16, dtype=np.float16))
+    return rel
+
+
+def file_table(root: Path, rels: list[str]) -> dict[str, dict]:
+    from vlm_vpr_ros.map_io import sha256_file
+
+    return {r: {"bytes": (root / r).stat().st_size, "sha256": sha256_file(root / r)}
+            for r in rels}
+
+
+def save_map(ref_map: Any, path: Path) -> dict:
+    """Write an in-memory :class:`ReferenceMap` as a v2 folder; returns the manifest."""
+    from vlm_vpr_ros import __version__
+    from vlm_vpr_ros.map_io import MANIFEST, MAP_FORMAT, METRIC, atomic_save_npz, \
+        atomic_write_json
+
+    path.mkdir(parents=True, exist_ok=True)
+    rels: list[str] = []
+    if ref_map.descriptor_state:
+        atomic_save_npz(path / "descriptor_state.npz", ref_map.descriptor_state)
+        rels.append("descriptor_state.npz")
+    subs = []
+    for s in ref_map.submaps:
+        files = write_submap(path, s.id, s.kind, s.index, s.coords, list(s.ids),
+                             getattr(s, "rerank", None))
+        rels += list(files.values())
+        entry = {"id": s.id, "group": s.group or s.id, "count": s.count,
+                 "centroid": [round(float(c), 7) for c in s.centroid], "kind": s.kind,
+                 "files": files}
+        if getattr(s, "recall", None):
+            entry["recall"] = s.recall
+        subs.append(entry)
+    manifest = dict(ref_map.manifest)
+    kinds = sorted({s["kind"] for s in subs})
+    manifest.update({
+        "format": MAP_FORMAT, "version": VERSION, "software": f"vlm_vpr_ros {__version__}",
+        "metric": METRIC, "n_references": sum(s["count"] for s in subs), "n_submaps": len(subs),
+        "index": manifest.get("index", kinds[0] if len(kinds) == 1 else "auto"),
+        "index_params": {"rerank_factor": int(ref_map.rerank_factor),
+                         "pq": pq_name(ref_map.dim), **manifest.get("index_params", {})},
+        "descriptor_state": "descriptor_state.npz" if ref_map.descriptor_state else None,
+        "submaps": subs, "files": file_table(path, rels),
+    })
+    manifest["index_params"]["rerank_factor"] = int(ref_map.rerank_factor)
+    atomic_write_json(path / MANIFEST, manifest)
+    return manifest
+
+
+def pq_name(dim: int) -> str:
+    return indexes.pq_factory(dim)
+
+
+# -- reading ----------------------------------------------------------------------------------
+class IdView:
+    """Read-only sequence of str over a memory-mapped fixed-width UTF-8 array."""
+
+    def __init__(self, raw: np.ndarray) -> None:
+        self._raw = raw
+
+    def __len__(self) -> int:
+        return len(self._raw)
+
+    def __getitem__(self, i: int) -> str:
+        return bytes(self._raw[i]).decode("utf-8", errors="replace")
+
+    def __iter__(self) -> Iterator[str]:
+        for start in range(0, len(self._raw), 65536):
+            for b in self._raw[start:start + 65536].tolist():
+                yield b.decode("utf-8", errors="replace")
+
+
+class LazySubmap:
+    """A v2 submap: metadata from the manifest; files opened (memory-mapped) on first use."""
+
+    def __init__(self, root: Path, entry: dict, dim: int, files_meta: dict) -> None:
+        self.root, self.dim = root, dim
+        self.id: str = entry["id"]
+        self.group: str = entry.get("group") or entry["id"]
+        self.count: int = int(entry["count"])
+        self.centroid = tuple(float(c) for c in entry["centroid"])
+        self.kind: str = entry["kind"]
+        self.recall: dict | None = entry.get("recall")
+        self.files: dict[str, str] = dict(entry["files"])
+        self._sizes = {rel: int(files_meta[rel]["bytes"]) for rel in self.files.values()}
+        self._inodes: dict[str, tuple[int, int]] = {}
+        self._lock = threading.Lock()
+        self._open: tuple[Any, np.ndarray, IdView, np.ndarray | None] | None = None
+
+    # -- size guard (prevents SIGBUS on truncated mapped files) --------------------------------
+    def check_files(self) -> None:
+        """MapError when a file is missing or its size differs from the manifest. For an open
+        submap, a file replaced by another one (new inode, e.g. an atomic map update) is not an
+        error: the mapping keeps the old file alive."""
+        for rel, size in self._sizes.items():
+            try:
+                st = os.stat(self.root / rel)
+            except OSError as exc:
+                if self._open is not None:
+                    continue  # unlinked: the mapping keeps the data alive
+                raise MapError(f"{self.root}: missing file {rel} ({exc.strerror})") from None
+            same_file = self._inodes.get(rel) in (None, (st.st_dev, st.st_ino))
+            if same_file and st.st_size != size:
+                when = "after the map was opened" if self._open is not None else ""
+                raise MapError(f"{self.root}: {rel} has {st.st_size} bytes, manifest says {size} "
+                               f"(truncated or modified {when}); reload or rebuild the map"
+                               .replace("  ", " ").replace(" )", ")"))
+
+    def _do_open(self):
+        import faiss
+
+        self.check_files()
+        root, sid = self.root, self.id
+        ip = root / self.files["index"]
+        flags = faiss.IO_FLAG_MMAP_IFC if self.kind in ("flat", "fp16") else 0
+        try:
+            index = faiss.read_index(str(ip), flags)
+        except RuntimeError as exc:
+            raise MapError(f"{root}: cannot read FAISS index {self.files['index']}: "
+                           f"{str(exc).splitlines()[0]}") from exc
+        if not isinstance(index, indexes.index_class(self.kind)):
+            raise MapError(f"{root}: submap {sid} index is {type(index).__name__}, manifest "
+                           f"says {self.kind!r}")
+        if index.d != self.dim:
+            raise MapError(f"{root}: submap {sid} index has dim {index.d}, manifest says "
+                           f"{self.dim}")
+        if index.ntotal != self.count:
+            raise MapError(f"{root}: submap {sid} index holds {index.ntotal} vectors, manifest "
+                           f"says {self.count}")
+        coords = _load_array(root, self.files["coords"], (self.count, 2), "f8")
+        if self.count and not np.all(np.isfinite(coords[: min(self.count, 4096)])):
+            raise MapError(f"{root}: submap {sid} coordinates are not finite")
+        raw = _load_array(root, self.files["ids"], (self.count,), "S")
+        rerank = None
+        if self.kind == "pq":
+            rerank = _load_array(root, self.files["vectors"], (self.count, self.dim), "f2")
+        for rel in self.files.values():
+            st = os.stat(root / rel)
+            self._inodes[rel] = (st.st_dev, st.st_ino)
+        return index, coords, IdView(raw), rerank
+
+    def opened(self):
+        if self._open is None:
+            with self._lock:
+                if self._open is None:
+                    self._open = self._do_open()
+        return self._open
+
+    @property
+    def is_open(self) -> bool:
+        return self._open is not None
+
+    @property
+    def index(self) -> Any:
+        return self.opened()[0]
+
+    @property
+    def coords(self) -> np.ndarray:
+        return self.opened()[1]
+
+    @property
+    def ids(self) -> IdView:
+        return self.opened()[2]
+
+    @property
+    def rerank(self) -> np.ndarray | None:
+        return self.opened()[3]
+
+    def search(self, q: np.ndarray, k: int, factor: int) -> tuple[np.ndarray, np.ndarray]:
+        index, _, _, rerank = self.opened()
+        self.check_files()
+        return indexes.search(index, self.kind, rerank, q, k, factor)
+
+    def vectors(self) -> np.ndarray:
+        index, _, _, rerank = self.opened()
+        self.check_files()
+        return indexes.vectors(index, self.kind, rerank)
+
+
+def _load_array(root: Path, rel: str, shape: tuple[int, ...], kind: str) -> np.ndarray:
+    try:
+        arr = np.load(root / rel, mmap_mode="r", allow_pickle=False)
+    except (OSError, ValueError) as exc:
+        raise MapError(f"{root}: cannot read {rel}: {exc}") from exc
+    if isinstance(arr, np.memmap):
+        mm = getattr(arr, "_mmap", None)
+        if mm is not None and hasattr(mmap, "MADV_RANDOM"):
+            # rows are read a few at a time: no read-ahead, or every query maps ~32 pages per
+            # row and the file-backed RSS grows towards the whole file
+            mm.madvise(mmap.MADV_RANDOM)
+        arr = arr.view(np.ndarray)  # same mapping, without np.memmap's per-item overhead
+    ok = arr.shape == shape and (arr.dtype.kind == "S" if kind == "S"
+                                 else arr.dtype == np.dtype(kind))
+    if not ok:
+        raise MapError(f"{root}: {rel} is {arr.dtype}{arr.shape}, expected {kind}{shape}")
+    return arr
+
+
+def validate_entries(path: Path, manifest: dict) -> None:
+    """Structure of a v2 manifest and the size of every file it lists (no file is read)."""
+    files = manifest["files"]
+    if not isinstance(files, dict):
+        raise MapError(f"{path}: manifest 'files' is not an object")
+    seen = set()
+    for entry in manifest["submaps"]:
+        try:
+            sid, kind, count, roles = entry["id"], entry["kind"], int(entry["count"]), \
+                entry["files"]
+            [float(c) for c in entry["centroid"]]
+        except (KeyError, TypeError, ValueError) as exc:
+            raise MapError(f"{path}: malformed submap entry {str(entry)[:200]}") from exc
+        if sid in seen:
+            raise MapError(f"{path}: duplicate submap id {sid!r}")
+        seen.add(sid)
+        if kind not in indexes.SUBMAP_KINDS or count < 0:
+            raise MapError(f"{path}: submap {sid}: kind {kind!r} / count {count} invalid")
+        need = {"index", "coords", "ids"} | ({"vectors"} if kind == "pq" else set())
+        if not isinstance(roles, dict) or not need <= set(roles):
+            raise MapError(f"{path}: submap {sid} lacks files {sorted(need - set(roles or {}))}")
+        for rel in roles.values():
+            _check_listed(path, files, rel)
+    if manifest.get("descriptor_state"):
+        _check_listed(path, files, manifest["descriptor_state"])
+
+
+def _check_listed(path: Path, files: dict, rel: str) -> None:
+    meta = files.get(rel)
+    if not isinstance(meta, dict) or not isinstance(meta.get("bytes"), int):
+        raise MapError(f"{path}: {rel} is not listed in the manifest")
+    p = path / rel
+    if ".." in Path(rel).parts or Path(rel).is_absolute():
+        raise MapError(f"{path}: file {rel!r} is outside the map folder")
+    try:
+        size = p.stat().st_size
+    except OSError:
+        raise MapError(f"{path}: missing file {rel}") from None
+    if size != meta["bytes"]:
+        raise MapError(f"{path}: {rel} has {size} bytes, manifest says {meta['bytes']} "
+                       "(truncated or modified)")
+
+
+def load_map(path: Path, manifest: dict, verify: bool) -> Any:
+    """A :class:`ReferenceMap` over a v2 folder (lazy submaps)."""
+    from vlm_vpr_ros.map_io import ReferenceMap
+    from vlm_vpr_ros.map_validate import load_state
+
+    validate_entries(path, manifest)
+    if verify:
+        verify_map(path, manifest)
+    state = load_state(path, manifest, False)
+    dim = int(manifest["descriptor"]["dim"])
+    subs = [LazySubmap(path, e, dim, manifest["files"]) for e in manifest["submaps"]]
+    total = sum(s.count for s in subs)
+    if total != manifest["n_references"]:
+        raise MapError(f"{path}: submaps hold {total} references, manifest says "
+                       f"{manifest['n_references']}")
+    m = ReferenceMap(manifest, subs, state, path)
+    factor = manifest.get("index_params", {}).get("rerank_factor",
+                                                  indexes.DEFAULT_RERANK_FACTOR)
+    m.rerank_factor = int(factor)
+    return m
+
+
+def verify_map(path: Path, manifest: dict, progress: Any = None) -> list[str]:
+    """sha256 of every listed file against the manifest; raises MapError naming the first bad
+    one. Returns the files checked."""
+    from vlm_vpr_ros.map_io import sha256_file
+
+    checked = []
+    for rel, meta in manifest["files"].items():
+        p = path / rel
+        if not p.is_file():
+            raise MapError(f"{path}: missing file {rel}")
+        if p.stat().st_size != meta.get("bytes"):
+            raise MapError(f"{path}: {rel} has {p.stat().st_size} bytes, manifest says "
+                           f"{meta.get('bytes')} (truncated or modified)")
+        if sha256_file(p) != meta.get("sha256"):
+            raise MapError(f"{path}: {rel} checksum mismatch (corrupt or modified)")
+        checked.append(rel)
+        if progress is not None:
+            progress(rel)
+    return checked
