@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import io
 import os
+import warnings
 from pathlib import Path
 
 import cv2
@@ -14,14 +16,50 @@ from vlm_vpr_ros.errors import ImageDecodeError
 MAX_PIXELS = 100_000_000
 
 
+MIN_SIDE = 8
+
+
+def _check_size(w: int, h: int, what: str) -> None:
+    if h < MIN_SIDE or w < MIN_SIDE:
+        raise ImageDecodeError(f"{what}: image too small ({w}x{h} px; at least "
+                               f"{MIN_SIDE}x{MIN_SIDE})")
+    if h * w > MAX_PIXELS:
+        raise ImageDecodeError(f"{what}: image too large ({w}x{h} = {w * h:,} px; at most "
+                               f"{MAX_PIXELS:,})")
+
+
+def _header_size(data: bytes, what: str) -> tuple[int, int] | None:
+    """(width, height) from the file header without decoding (None when unknown), so a huge
+    image is refused before its pixels are allocated."""
+    try:
+        from PIL import Image
+    except ImportError:  # pragma: no cover - Pillow comes with matplotlib
+        return None
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            with Image.open(io.BytesIO(data)) as im:
+                return im.size
+    except Image.DecompressionBombError as exc:
+        raise ImageDecodeError(f"{what}: image too large ({exc})") from None
+    except Exception:  # noqa: BLE001 - any header Pillow cannot read: let OpenCV decide
+        return None
+
+
 def decode_image_bytes(data: bytes | bytearray | memoryview, what: str = "image") -> np.ndarray:
-    """Decode JPEG/PNG/... bytes into (H, W, 3) uint8 RGB; raise ImageDecodeError if impossible."""
-    buf = np.frombuffer(bytes(data), dtype=np.uint8)
-    if buf.size == 0:
+    """Decode JPEG/PNG/... bytes into (H, W, 3) uint8 RGB; raise ImageDecodeError naming
+    ``what`` if impossible or when the image is smaller than 8 px or larger than 1e8 px."""
+    raw = bytes(data)
+    if not raw:
         raise ImageDecodeError(f"{what}: empty data")
+    size = _header_size(raw, what)
+    if size is not None:
+        _check_size(size[0], size[1], what)
+    buf = np.frombuffer(raw, dtype=np.uint8)
     img = cv2.imdecode(buf, cv2.IMREAD_COLOR)
     if img is None or img.size == 0:
         raise ImageDecodeError(f"{what}: not a decodable image ({buf.size} bytes)")
+    _check_size(img.shape[1], img.shape[0], what)
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
