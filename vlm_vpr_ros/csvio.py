@@ -24,6 +24,9 @@ def read_rows(path: str | os.PathLike[str], what: str = "CSV",
     if not path.is_file():
         raise DataError(f"{what} not found: {path}")
     try:
+        with path.open("rb") as raw:
+            if b"\x00" in raw.read(1 << 16):
+                raise DataError(f"{path}: malformed CSV: NUL bytes (a binary file, not a CSV)")
         with path.open(newline="", encoding="utf-8-sig") as fh:
             reader = csv.DictReader(fh)
             cols = [(c or "").strip() for c in reader.fieldnames or []]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -145,7 +146,7 @@ def load_state(path: Path, manifest: dict, verify: bool) -> dict[str, np.ndarray
     try:
         with np.load(p, allow_pickle=False) as npz:
             return {k: npz[k] for k in npz.files}
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as exc:
         raise MapError(f"{path}: cannot read {rel}: {exc}") from exc
 
 
@@ -179,7 +180,9 @@ def load_submap(path: Path, manifest: dict, entry: Any, verify: bool):
     cp = _file(path, manifest, files["coords"], verify)
     try:
         coords = np.load(cp, allow_pickle=False)
-    except (OSError, ValueError) as exc:
+        if not isinstance(coords, np.ndarray):  # an .npz under a .npy name
+            raise ValueError("not a .npy array")
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
         raise MapError(f"{path}: cannot read {files['coords']}: {exc}") from exc
     if coords.shape != (count, 2) or not np.all(np.isfinite(coords)):
         raise MapError(f"{path}: submap {sid} coordinates have shape {coords.shape}, "

@@ -54,7 +54,7 @@ def main(argv: list[str] | None = None) -> int:
     # Every record goes through the one redaction point (vlm_vpr_ros.redact): no key in a log.
     handler = logging.StreamHandler(sys.stderr)
     redact.install(handler, "%(levelname)s %(name)s: %(message)s")
-    logging.basicConfig(level=root_level, handlers=[handler], force=True)
+    logging.basicConfig(level=root_level, handlers=[handler])
     logging.getLogger("vlm_vpr_ros").setLevel(
         logging.WARNING if args.quiet else min(root_level, logging.INFO))
     try:
