@@ -62,7 +62,8 @@ CATALOGUE: dict[str, tuple[str, str, str]] = {
     "bag_mcap_truncated": ("bag", "MCAP cut at 60 %", "frames read are scored, bag flagged "
                                                       "incomplete (or exit 2 one line)"),
     "bag_db3_garbage": ("bag", "a .db3 that is not SQLite", "exit 2 one line"),
-    "bag_metadata_garbage": ("bag", "metadata.yaml is not YAML", "exit 2 one line"),
+    "bag_metadata_garbage": ("bag", "metadata.yaml is not YAML",
+                             "metadata ignored, frames read from the .mcap (bag untouched)"),
     # -- weights / answers ------------------------------------------------------------------------
     "weights_garbage": ("weights", "checkpoint file of random bytes (`weights check`)",
                         "exit 2 one line"),
