@@ -322,12 +322,13 @@ def test_disk_full_during_build(cli, map_copy, demo_data, tmp_path, monkeypatch,
     from vlm_vpr_ros import map_build, map_io
     from vlm_vpr_ros.map_io import ReferenceMap
 
-    monkeypatch.setattr(map_build, "CHUNK", 16)
+    monkeypatch.setattr(map_build, "CHUNK", 8)
     before = sha_tree(map_copy)
-    full = _FullDisk(after=4)  # job.json, fitted state, two chunks (4 files) ... then full
+    full = _FullDisk(after=4)  # job.json, fitted state, one chunk (2 files) ... then full
     monkeypatch.setattr(map_io, "os", full)
-    args = ("build-map", "--images", demo_data / "images", "--coords",
-            demo_data / "coords.csv", "--out", map_copy, "--overwrite", *FAST)
+    coords, _ = _subset(tmp_path, demo_data, 24)
+    args = ("build-map", "--images", demo_data / "images", "--coords", coords, "--out",
+            map_copy, "--overwrite", *FAST)
     exit2(cli(*args), "No space left on device", "free some space")
     assert sha_tree(map_copy) == before  # the old map is untouched
     leftovers = [p for p in tmp_path.rglob("*") if ".tmp" in p.name]
@@ -363,8 +364,9 @@ def test_disk_full_while_streaming(cli, demo_map, demo_data, queries, tmp_path, 
 @pytest.mark.fault("kill9_build_resume")
 def test_kill9_mid_build_then_resume(tmp_path, demo_data):
     out = tmp_path / "m"
+    coords, _ = _subset(tmp_path, demo_data, 30)
     cmd = [sys.executable, "-m", "vlm_vpr_ros.cli", "-v", "build-map", "--images",
-           demo_data / "images", "--coords", demo_data / "coords.csv", "--out", out, *FAST]
+           demo_data / "images", "--coords", coords, "--out", out, *FAST]
     cmd = [str(c) for c in cmd]
     state = tmp_path / ".m.partial" / "work" / "descriptor_state.npz"
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -380,5 +382,5 @@ def test_kill9_mid_build_then_resume(tmp_path, demo_data):
     assert "Traceback" not in done.stderr
     from vlm_vpr_ros.map_io import ReferenceMap
 
-    assert ReferenceMap.load(out).n_references == 71
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["m"]
+    assert ReferenceMap.load(out).n_references == 30
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["c.csv", "m"]
