@@ -40,7 +40,7 @@ def make_bag(images_dir: str | os.PathLike[str], coords_csv: str | os.PathLike[s
         raise ConfigError(f"--rate must be a positive frequency in Hz, got {rate_hz}")
     images_dir = Path(images_dir)
     rows = read_coords_csv(coords_csv)
-    check_not_inside(out, [images_dir, coords_csv])
+    check_not_inside(out, [images_dir, coords_csv], allow_out_inside=True)
     with StagedOutput(out, "bag", overwrite) as stage:
         info = _make(images_dir, rows, coords_csv, stage.path, rate_hz, compressed,
                      topic_prefix, gt_topic, frame_id, start_time_ns, compression, progress)
