@@ -29,7 +29,7 @@ _HEADER = re.compile(r"(?i)\b(authorization|proxy-authorization|x-api-key|api-ke
                      r"(['\"]?\s*[:=]\s*['\"]?)(?:bearer\s+|basic\s+)?[^\s'\",}]+")
 _BEARER = re.compile(r"(?i)\b(bearer\s+)[A-Za-z0-9._~+/=-]{6,}")
 _NAMED = re.compile(r"(?i)\b([a-z_]*(?:api_?key|secret|token|password|passwd)[a-z_]*)"
-                    r"(['\"]?\s*[:=]\s*['\"]?)(?!\$|\{)([^\s'\",}]+)")
+                    r"(['\"]?\s*[:=]\s*['\"]?)(?!\$|\{)([^\s'\",}&]+)")
 _SHAPED = re.compile(r"\b(?:sk-[A-Za-z0-9_-]{8,}|AIza[0-9A-Za-z_-]{20,}|gh[pousr]_[A-Za-z0-9]{20,}"
                      r"|hf_[A-Za-z0-9]{20,}|xox[abpr]-[A-Za-z0-9-]{10,})")
 #: a value named like an environment variable (what api_key_env expects)
