@@ -2,9 +2,8 @@
 
 from __future__ import annotations
 
-import io
 import os
-import warnings
+import struct
 from pathlib import Path
 
 import cv2
@@ -28,22 +27,36 @@ def _check_size(w: int, h: int, what: str) -> None:
                                f"{MAX_PIXELS:,})")
 
 
+_SOF = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
+
+
 def _header_size(data: bytes, what: str) -> tuple[int, int] | None:
-    """(width, height) from the file header without decoding (None when unknown), so a huge
-    image is refused before its pixels are allocated."""
-    try:
-        from PIL import Image
-    except ImportError:  # pragma: no cover - Pillow comes with matplotlib
+    """(width, height) from a PNG or JPEG header without decoding (None for other formats or
+    a header that cannot be read), so a huge image is refused before its pixels exist."""
+    if data[:8] == b"\x89PNG\r\n\x1a\n" and data[12:16] == b"IHDR" and len(data) >= 24:
+        w, h = struct.unpack(">II", data[16:24])
+        return w, h
+    if data[:2] != b"\xff\xd8":
         return None
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            with Image.open(io.BytesIO(data)) as im:
-                return im.size
-    except Image.DecompressionBombError as exc:
-        raise ImageDecodeError(f"{what}: image too large ({exc})") from None
-    except Exception:  # noqa: BLE001 - any header Pillow cannot read: let OpenCV decide
-        return None
+    i = 2
+    while i + 9 <= len(data):  # walk the JPEG segments to the first start-of-frame
+        if data[i] != 0xFF:
+            return None
+        marker = data[i + 1]
+        if marker == 0xFF:
+            i += 1
+            continue
+        if marker in (0x01, 0xD8) or 0xD0 <= marker <= 0xD7:
+            i += 2
+            continue
+        seg = struct.unpack(">H", data[i + 2:i + 4])[0]
+        if marker in _SOF:
+            h, w = struct.unpack(">HH", data[i + 5:i + 9])
+            return w, h
+        if seg < 2:
+            return None
+        i += 2 + seg
+    return None
 
 
 def decode_image_bytes(data: bytes | bytearray | memoryview, what: str = "image") -> np.ndarray:

@@ -41,7 +41,8 @@ _FENCE = re.compile(r"```[ \t]*([A-Za-z0-9_-]*)[ \t]*\r?\n?(.*?)```", re.S)
 _PAPER_NUM = re.compile(r"[-+]?\d*\.\d+|\d+")
 # a decimal number, optionally in scientific notation; never a prefix of a longer number
 # ("1e400" is inf -> out of range, "0.1e3" is 100, "1234.5" is not 123)
-_NUM = r"[-+−]?\d+(?:[.,]\d+)?(?:[eE][-+]?\d+)?(?![\d.]\d)"
+# (bounded repeats + look-arounds: linear time on a 100 000-digit answer)
+_NUM = r"(?<![\d.])[-+−]?\d{1,12}(?:[.,]\d{1,15})?(?:[eE][-+]?\d{1,4})?(?![\d.]\d|\d)"
 _HEMI = r"(?:[NSEW]|north|south|east|west)\b"
 _DEG = r"\s*(?:°|º|˚|deg(?:rees?)?\b|degs?\b)?"
 # one coordinate value: DMS / DM, or decimal with optional degree sign and hemisphere
