@@ -20,11 +20,11 @@ MIN_SIDE = 8
 
 def _check_size(w: int, h: int, what: str) -> None:
     if h < MIN_SIDE or w < MIN_SIDE:
-        raise ImageDecodeError(f"{what}: image too small ({w}x{h} px; at least "
-                               f"{MIN_SIDE}x{MIN_SIDE})")
+        raise ImageDecodeError(f"{what}: unusable size {w}x{h} (too small: at least "
+                               f"{MIN_SIDE}x{MIN_SIDE} px)")
     if h * w > MAX_PIXELS:
-        raise ImageDecodeError(f"{what}: image too large ({w}x{h} = {w * h:,} px; at most "
-                               f"{MAX_PIXELS:,})")
+        raise ImageDecodeError(f"{what}: unusable size {w}x{h} (too large: {w * h:,} px, at "
+                               f"most {MAX_PIXELS:,})")
 
 
 _SOF = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}

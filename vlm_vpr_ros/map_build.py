@@ -75,6 +75,14 @@ def _fingerprint(rows, descriptor: GlobalDescriptor, partition: str, clusters: i
     return h.hexdigest()
 
 
+def _local_path(uri: str) -> Path | None:
+    """The folder of a ``file://`` URI (remote sources have no local stat: None)."""
+    import urllib.parse
+
+    u = urllib.parse.urlparse(uri)
+    return Path(urllib.parse.unquote(u.path)) if u.scheme in ("", "file") else None
+
+
 def images_fingerprint(images_dir: Path, rows) -> str:
     """Size and modification time (ns) of every reference image ("missing" when absent): a
     map built from other bytes is not up to date."""
@@ -158,7 +166,8 @@ def build_map(images_dir: str | Path, coords_csv: str | Path, out_dir: str | Pat
     check_not_inside(out_dir, [images_dir if isinstance(images_dir, Path) else None,
                                coords_csv], allow_out_inside=True)
     fp = _fingerprint(rows, desc, partition, clusters, index)
-    fp_images = images_fingerprint(images_dir, rows) if isinstance(images_dir, Path) else ""
+    local = images_dir if isinstance(images_dir, Path) else _local_path(str(images_dir))
+    fp_images = images_fingerprint(local, rows) if local is not None else ""
     if (out_dir / MANIFEST).is_file() and written_by_us(out_dir, "map") and not overwrite:
         try:
             source = json.loads((out_dir / MANIFEST).read_text(encoding="utf-8")).get("source")

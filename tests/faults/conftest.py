@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from catalogue import CATALOGUE
+from faults.catalogue import CATALOGUE
 
 _results: dict[str, str] = {}
 

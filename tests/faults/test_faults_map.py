@@ -10,7 +10,7 @@ import shutil
 import numpy as np
 import pytest
 
-from conftest import exit2, sha_tree
+from faults.conftest import exit2, sha_tree
 
 
 def _manifest(m):

@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 import pytest
 
-from conftest import exit2, sha_tree
+from faults.conftest import exit2, sha_tree
 
 FAST = ("--descriptor", "vlad_rootsift_fast", "--partition", "none")
 
@@ -50,8 +50,8 @@ def test_tiny_and_huge_reference_skipped(cli, tmp_path, demo_data):
     rc, out, _ = cli("build-map", "--images", images, "--coords", coords, "--out",
                      tmp_path / "m", *FAST)
     assert rc == 0 and "8 references" in out
-    assert f"{images / names[0]}: image too small (4x4 px" in cli.text
-    assert f"{images / names[1]}: image too large (10001x10001" in cli.text
+    assert f"{images / names[0]}: unusable size 4x4 (too small" in cli.text
+    assert f"{images / names[1]}: unusable size 10001x10001 (too large" in cli.text
     from vlm_vpr_ros.map_io import ReferenceMap
 
     assert ReferenceMap.load(tmp_path / "m").manifest["source"]["skipped"] == names[:2]
@@ -66,7 +66,7 @@ def test_huge_image_refused_before_decoding(monkeypatch):
         raise AssertionError("decoded a 1e8-pixel image")
 
     monkeypatch.setattr(imageio.cv2, "imdecode", no_decode)
-    with pytest.raises(ImageDecodeError, match=r"big\.png: image too large"):
+    with pytest.raises(ImageDecodeError, match=r"big\.png: unusable size 20000x6000 \(too large"):
         imageio.decode_image_bytes(_png_header_only(20000, 6000), "big.png")
 
 

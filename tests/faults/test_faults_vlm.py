@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from chat_server import ChatServer
-from conftest import exit2
+from faults.conftest import exit2
 
 CANARY_ENV = "CanaryKey0ab12cd34ef56gh78"  # a key read from $VLM_FAULT_KEY
 CANARY_URL = "canarypw-9f8e7d6c5b4a"  # a key given as base_url userinfo

@@ -6,7 +6,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-from catalogue import CATALOGUE
+from faults.catalogue import CATALOGUE
 
 DOC = Path(__file__).resolve().parents[2] / "docs" / "robustness.md"
 
