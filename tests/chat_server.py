@@ -15,6 +15,11 @@ Behaviours: ``ok`` (JSON answer with the configured lat/lon), ``slow`` (the same
 ``fail_times`` requests, then ok; ``fail_times=0`` = always), ``malformed`` (a broken JSON body),
 ``refusal`` (a real-style "I'm unable to provide location details" text), ``fenced`` (a fenced
 JSON answer), ``prose`` (coordinates in running text), ``hang`` (never answers until stopped).
+Misbehaviours for the fault suite: ``garbage`` (200 with non-JSON bytes), ``huge`` (a 50 MB body,
+streamed in 1 MB blocks), ``drip`` (headers, then one byte every ``delay_s``, at most 600 bytes),
+``reset`` (the connection is reset without an answer), ``silence`` (the request is read, then
+nothing is sent until stopped: same as ``hang``). Every loop is bounded and stops with the
+server.
 """
 
 from __future__ import annotations
@@ -25,7 +30,9 @@ import threading
 import time
 from typing import Any
 
-BEHAVIOURS = ("ok", "slow", "429", "500", "malformed", "refusal", "fenced", "prose", "hang")
+BEHAVIOURS = ("ok", "slow", "429", "500", "malformed", "refusal", "fenced", "prose", "hang",
+              "garbage", "huge", "drip", "reset", "silence")
+HUGE_BYTES = 50 * 1024 * 1024
 
 
 class _Handler(http.server.BaseHTTPRequestHandler):
@@ -201,8 +208,11 @@ class ChatServer:
                     self._failures += 1
         model = str(body.get("model", "fixture-model"))
         answer = json.dumps({"latitude": lat, "longitude": lon})
-        if behaviour == "hang":
+        if behaviour in ("hang", "silence"):
             self._stop.wait()
+            return
+        if behaviour in ("garbage", "huge", "drip", "reset"):
+            self._misbehave(handler, behaviour, delay)
             return
         if behaviour == "slow" and self._stop.wait(delay):
             return
@@ -224,3 +234,38 @@ class ChatServer:
                 f"longitude {lon}.", model))
         else:
             handler._send(200, completion(answer, model))
+
+    def _misbehave(self, handler: _Handler, behaviour: str, delay: float) -> None:
+        import socket
+        import struct
+
+        try:
+            if behaviour == "garbage":
+                handler._send(200, None, raw=b"\x00\xff<html>502 Bad Gateway</html>\x9c" * 40)
+            elif behaviour == "reset":  # SO_LINGER 0: close() sends RST
+                handler.connection.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER,
+                                              struct.pack("ii", 1, 0))
+                handler.connection.close()
+                handler.close_connection = True
+            elif behaviour == "huge":
+                handler.send_response(200)
+                handler.send_header("Content-Type", "application/json")
+                handler.send_header("Content-Length", str(HUGE_BYTES))
+                handler.end_headers()
+                block = b"[" * (1 << 20)
+                for _ in range(HUGE_BYTES // len(block)):
+                    if self._stop.is_set():
+                        break
+                    handler.wfile.write(block)
+            elif behaviour == "drip":
+                handler.send_response(200)
+                handler.send_header("Content-Type", "application/json")
+                handler.send_header("Content-Length", "600")
+                handler.end_headers()
+                for _ in range(600):
+                    if self._stop.wait(max(delay, 0.05)):
+                        break
+                    handler.wfile.write(b" ")
+                    handler.wfile.flush()
+        except OSError:
+            pass  # the client gave up: expected

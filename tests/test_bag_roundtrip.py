@@ -14,7 +14,7 @@ import yaml
 
 from vlm_vpr_ros.bags.make import make_bag
 from vlm_vpr_ros.bags.reader import deserialize, open_bag
-from vlm_vpr_ros.errors import BagError, ConfigError, DataError
+from vlm_vpr_ros.errors import BagError, ConfigError, DataError, OutputError
 from vlm_vpr_ros.imageio import load_image
 
 START = 1_700_000_000_250_000_000
@@ -151,7 +151,7 @@ def test_frames_sidecar_and_no_partial_bag_on_error(made, tmp_path, subset, demo
     lines = (out / "frames.csv").read_text().splitlines()
     assert lines[0] == "index,stamp_ns,file,lat,lon" and len(lines) == N + 1
     assert lines[1].split(",")[1:3] == [str(START), rows[0][0]]
-    with pytest.raises(BagError, match="already exists"):
+    with pytest.raises(OutputError, match="already holds a bag; pass --overwrite"):
         make_bag(demo_data / "images", subset[0], out, progress=False)
     empty = tmp_path / "empty"
     empty.mkdir()

@@ -136,7 +136,8 @@ def test_interrupted_build_resumes_without_redoing_chunks(tmp_path, demo_data, m
     with pytest.raises(KeyboardInterrupt):
         build_map(demo_data / "images", demo_data / "coords.csv", out,
                   descriptor="vlad_rootsift_fast", partition="none", progress=False)
-    assert len(list((out / ".build").glob("chunk_*.ok.npy"))) == 2
+    work = tmp_path / ".m.partial" / "work"  # built next to the target, not inside it
+    assert not out.exists() and len(list(work.glob("chunk_*.ok.npy"))) == 2
     calls["n"] = 0
     monkeypatch.setattr(map_build, "load_image", real)
     counted = {"n": 0}
@@ -149,7 +150,8 @@ def test_interrupted_build_resumes_without_redoing_chunks(tmp_path, demo_data, m
     m = build_map(demo_data / "images", demo_data / "coords.csv", out,
                   descriptor="vlad_rootsift_fast", partition="none", progress=False)
     assert counted["n"] == 71 - 32  # no refit (state resumed), first two chunks not re-read
-    assert m.n_references == 71 and not (out / ".build").exists()
+    assert m.n_references == 71 and not (tmp_path / ".m.partial").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m"]
 
 
 def test_with_partition_keeps_references_and_descriptors(demo_map):

@@ -254,7 +254,7 @@ def _wait(cond, timeout: float, what: str, proc: subprocess.Popen | None = None)
 
 def test_cluster_build_survives_a_killed_worker(cluster, refs, reference_map, tmp_path):
     out = tmp_path / "map"
-    shards = out / ".build" / "shards"
+    shards = tmp_path / ".map.partial" / "work" / "shards"  # built next to the map
     proc = subprocess.Popen(build_cmd(refs, out, cluster.address), env=ray_env(),
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
@@ -276,7 +276,7 @@ def test_cluster_build_survives_a_killed_worker(cluster, refs, reference_map, tm
 
 def test_cluster_driver_killed_and_rerun_resumes(cluster, refs, reference_map, tmp_path):
     out = tmp_path / "map"
-    shards = out / ".build" / "shards"
+    shards = tmp_path / ".map.partial" / "work" / "shards"  # built next to the map
     proc = subprocess.Popen(build_cmd(refs, out, cluster.address), env=ray_env(),
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:

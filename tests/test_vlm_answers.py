@@ -61,7 +61,7 @@ def test_answers_provider_looks_up_by_key_and_basename(answers_csv):
 def test_answers_provider_bad_inputs(tmp_path):
     with pytest.raises(DataError, match="filename,response"):
         create_prior_provider("answers", {"path": str(_write(tmp_path / "x.csv", ["a"], []))})
-    with pytest.raises(DataError, match="cannot read"):
+    with pytest.raises(DataError, match="not found"):
         create_prior_provider("answers", {"path": str(tmp_path / "missing.csv")})
 
 

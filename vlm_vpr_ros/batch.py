@@ -66,7 +66,78 @@ def localize_files(pipeline: LocalizationPipeline, provider: PriorProvider,
             log.warning("query %s failed: %s", f, exc)
             yield {"file": f, "flags": "error", "prior_reason": str(exc)}
             continue
+        except Exception as exc:  # noqa: BLE001 - one failing query must not lose the run
+            log.warning("query %s failed: internal error %s: %s", f, type(exc).__name__, exc)
+            yield {"file": f, "flags": "error",
+                   "prior_reason": f"internal error: {type(exc).__name__}: {exc}"}
+            continue
         row = {"file": f, **hyp.as_row(), "prior_latency_s": f"{prior.latency_s:.3f}"}
         row.update({k: f"{v:.2f}" for k, v in hyp.timings_ms.items()})
         row["descriptor_ms"] = f"{t_desc:.2f}"
         yield row
+
+
+# -- streamed results (localize --out, --resume) -----------------------------------------------
+def is_results_csv(path: Path) -> bool:
+    """Whether ``path`` is a results CSV written by ``vlm-vpr localize`` (safe to replace)."""
+    import csv
+
+    try:
+        with path.open(newline="", encoding="utf-8-sig") as fh:
+            header = next(csv.reader(fh), [])
+    except (OSError, UnicodeDecodeError, csv.Error):
+        return False
+    return {"file", "lat", "lon", "flags", "submap"} <= set(header)
+
+
+def read_done_rows(path: Path) -> list[dict]:
+    """Finished rows of a (possibly interrupted) results CSV: a last line cut short by a crash
+    or a full disk is dropped, and so are rows flagged ``error`` (retried on resume)."""
+    import csv
+    import io
+
+    text = path.read_text(encoding="utf-8-sig", errors="replace")
+    if text and not text.endswith("\n"):
+        text = text[:text.rfind("\n") + 1]
+    rows = []
+    for row in csv.DictReader(io.StringIO(text, newline="")):
+        if any(row.get(k) is None for k in RESULT_FIELDS) or not row.get("file"):
+            continue
+        if "error" in (row.get("flags") or "").split("|"):
+            continue
+        rows.append({k: row[k] for k in RESULT_FIELDS})
+    return rows
+
+
+class ResultsStream:
+    """Rows appended to ``OUT.partial`` one by one (flushed), renamed to ``OUT`` when done."""
+
+    def __init__(self, out: Path, done: list[dict]) -> None:
+        import csv
+
+        from vlm_vpr_ros.csvio import write_csv_atomic
+
+        self.out, self.partial = out, out.with_name(out.name + ".partial")
+        write_csv_atomic(self.partial, RESULT_FIELDS, done)
+        self._fh = self.partial.open("a", newline="", encoding="utf-8")
+        self._w = csv.DictWriter(self._fh, fieldnames=RESULT_FIELDS, extrasaction="ignore")
+        self.rows = list(done)
+
+    def write(self, row: dict) -> None:
+        self._w.writerow(row)
+        self._fh.flush()
+        self.rows.append(row)
+
+    def close(self) -> None:
+        if not self._fh.closed:
+            self._fh.close()
+
+    def finish(self, order: Sequence[str]) -> None:
+        """Write ``OUT`` in query order atomically, then drop the partial file."""
+        from vlm_vpr_ros.csvio import write_csv_atomic
+
+        self.close()
+        rank = {f: i for i, f in enumerate(order)}
+        rows = sorted(self.rows, key=lambda r: rank.get(r.get("file"), len(rank)))
+        write_csv_atomic(self.out, RESULT_FIELDS, rows)
+        self.partial.unlink(missing_ok=True)

@@ -37,3 +37,10 @@ class DataError(VlmVprError):
 
 class BagError(VlmVprError):
     """A bag is missing, truncated, corrupt or lacks the expected topics/types."""
+
+
+class OutputError(VlmVprError, OSError):
+    """An output cannot be written safely (unsafe target, disk full, no permission).
+
+    Also an :class:`OSError`, so code that already treats write failures as OS errors keeps
+    working."""

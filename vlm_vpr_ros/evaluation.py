@@ -49,29 +49,17 @@ def format_table(rows: dict[str, dict], title: str = "") -> str:
 def read_ground_truth(path) -> dict[str, tuple[float, float]]:
     """Ground truth CSV as {file: (lat, lon)}; columns ``file, lat, lon`` or IM2GPS-style
     ``IMG_ID, LAT, LON``."""
-    import csv
-    from pathlib import Path
-
+    from vlm_vpr_ros.csvio import parse_latlon, read_rows, unique_rows
     from vlm_vpr_ros.errors import DataError
 
-    path = Path(path)
-    if not path.is_file():
-        raise DataError(f"ground truth CSV not found: {path}")
-    with path.open(newline="", encoding="utf-8") as fh:
-        reader = csv.DictReader(fh)
-        cols = reader.fieldnames or []
-        for fcol, lacol, locol in (("file", "lat", "lon"), ("IMG_ID", "LAT", "LON")):
-            if {fcol, lacol, locol} <= set(cols):
-                break
-        else:
-            raise DataError(f"{path}: needs columns file,lat,lon or IMG_ID,LAT,LON; has {cols}")
-        out = {}
-        for n, row in enumerate(reader, start=2):
-            try:
-                out[row[fcol]] = (float(row[lacol]), float(row[locol]))
-            except (TypeError, ValueError):
-                raise DataError(f"{path}:{n}: bad coordinates {row}") from None
-    return out
+    cols, rows = read_rows(path, "ground truth CSV")
+    for fcol, lacol, locol in (("file", "lat", "lon"), ("IMG_ID", "LAT", "LON")):
+        if {fcol, lacol, locol} <= set(cols):
+            break
+    else:
+        raise DataError(f"{path}: needs columns file,lat,lon or IMG_ID,LAT,LON; has {cols}")
+    return unique_rows(((n, row[fcol], parse_latlon(row[lacol], row[locol], f"{path}:{n}"))
+                        for n, row in rows), path, "file")
 
 
 def _float(v) -> float | None:

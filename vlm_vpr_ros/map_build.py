@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import os
 import shutil
 import time
 from pathlib import Path
@@ -13,37 +14,50 @@ from typing import Any, Iterator, Mapping
 import numpy as np
 
 from vlm_vpr_ros.config import choose
-from vlm_vpr_ros.csvio import read_table
+from vlm_vpr_ros.csvio import parse_latlon, read_rows, read_table, unique_rows
 from vlm_vpr_ros.descriptors import GlobalDescriptor, create_descriptor
 from vlm_vpr_ros.errors import DataError, ImageDecodeError, MapError
-from vlm_vpr_ros.imageio import load_image
+from vlm_vpr_ros.imageio import check_rgb, load_image
 from vlm_vpr_ros.map_io import (MANIFEST, ReferenceMap, Submap, atomic_save_npy, atomic_save_npz,
                                 atomic_write_json)
 from vlm_vpr_ros.maps.balance import split_large
 from vlm_vpr_ros.maps.indexes import (DEFAULT_RERANK_FACTOR, INDEX_KINDS, PQ_TRAIN_SAMPLE,
                                       check_kind, choose_kinds, effective_kind, make_index,
                                       measure_recall, train_pq)
+from vlm_vpr_ros.outputs import StagedOutput, check_not_inside, written_by_us
 from vlm_vpr_ros.partition import make_partition
-from vlm_vpr_ros.priors.simple import valid_latlon
 
 log = logging.getLogger(__name__)
 CHUNK = 128
 
 
-def read_coords_csv(path: str | Path) -> list[tuple[str, float, float]]:
-    """Read ``file, lat, lon`` rows; invalid coordinates are a DataError naming the row."""
-    rows: list[tuple[str, float, float]] = []
-    for n, row in enumerate(read_table(path, ("file", "lat", "lon"), "coordinates CSV"), 2):
-        try:
-            lat, lon = float(row["lat"]), float(row["lon"])
-        except (TypeError, ValueError):
-            raise DataError(f"{path}:{n}: lat/lon not numbers: {row}") from None
-        if not valid_latlon(lat, lon):
-            raise DataError(f"{path}:{n}: ({lat}, {lon}) out of range")
-        rows.append((row["file"], lat, lon))
-    if not rows:
+def check_reference_id(ref_id: str, where: str) -> str:
+    """A reference id is a relative path inside the images folder: no absolute paths, no
+    ``..``; anything else is a DataError naming ``where``."""
+    import re
+
+    if not ref_id or not ref_id.strip():
+        raise DataError(f"{where}: empty file name")
+    if (ref_id.startswith(("/", "\\")) or re.match(r"^[A-Za-z]:", ref_id) or "\0" in ref_id
+            or ".." in re.split(r"[/\\]", ref_id)):
+        raise DataError(f"{where}: file {ref_id!r} points outside the images folder (use a "
+                        "path relative to it, without '..')")
+    return ref_id
+
+
+def read_coords_csv(path: str | os.PathLike[str]) -> list[tuple[str, float, float]]:
+    """Read ``file, lat, lon`` rows; invalid coordinates, file names outside the images folder
+    and conflicting repeated rows are DataErrors naming the line."""
+    _, rows = read_rows(path, "coordinates CSV", ("file", "lat", "lon"))
+    items = []
+    for n, row in rows:
+        where = f"{path}:{n}"
+        items.append((n, check_reference_id(row["file"] or "", where),
+                      parse_latlon(row["lat"], row["lon"], where)))
+    table = unique_rows(items, path, "file")
+    if not table:
         raise DataError(f"{path}: no rows")
-    return rows
+    return [(f, la, lo) for f, (la, lo) in table.items()]
 
 
 def _progress(iterable, total: int, desc: str, enabled: bool):
@@ -62,6 +76,27 @@ def _fingerprint(rows, descriptor: GlobalDescriptor, partition: str, clusters: i
                         default=str).encode())
     for f, la, lo in rows:
         h.update(f"{f}\t{la!r}\t{lo!r}\n".encode())
+    return h.hexdigest()
+
+
+def _local_path(uri: str) -> Path | None:
+    """The folder of a ``file://`` URI (remote sources have no local stat: None)."""
+    import urllib.parse
+
+    u = urllib.parse.urlparse(uri)
+    return Path(urllib.parse.unquote(u.path)) if u.scheme in ("", "file") else None
+
+
+def images_fingerprint(images_dir: Path, rows) -> str:
+    """Size and modification time (ns) of every reference image ("missing" when absent): a
+    map built from other bytes is not up to date."""
+    h = hashlib.sha256()
+    for f, _, _ in rows:
+        try:
+            st = os.stat(images_dir / f)
+            h.update(f"{f}\t{st.st_size}\t{st.st_mtime_ns}\n".encode())
+        except OSError:
+            h.update(f"{f}\tmissing\n".encode())
     return h.hexdigest()
 
 
@@ -135,7 +170,7 @@ def new_index(kind: str, dim: int) -> Any:
 def _images(root: Path, rows, idx) -> Iterator[tuple[int, np.ndarray | None]]:
     for i in idx:
         try:
-            yield i, load_image(root / rows[i][0])
+            yield i, check_rgb(load_image(root / rows[i][0]), str(root / rows[i][0]))
         except ImageDecodeError as exc:
             log.warning("skipping reference: %s", exc)
             yield i, None
@@ -149,7 +184,11 @@ def build_map(images_dir: str | Path, coords_csv: str | Path, out_dir: str | Pat
               rerank_factor: int = DEFAULT_RERANK_FACTOR, engine: Any = None) -> ReferenceMap:
     """Build (or resume building) a map folder; see the README "Map format" section.
     ``engine``: describe (and fit), partition and index elsewhere, e.g. on Ray
-    (``vlm_vpr_ros.distributed.build``); by default everything runs in this process."""
+    (``vlm_vpr_ros.distributed.build``); by default everything runs in this process.
+
+    The map is built in ``.OUT.partial/`` next to ``out_dir`` and swapped in when complete and
+    valid (:mod:`vlm_vpr_ros.outputs`): an old map stays until then, and a failed or
+    interrupted build (full disk, Ctrl-C, kill) resumes from its finished chunks."""
     out_dir = Path(out_dir)
     if engine is None:  # an engine may read a URI (s3://, gs://, file://): keep it a string
         images_dir = Path(images_dir)
@@ -159,31 +198,57 @@ def build_map(images_dir: str | Path, coords_csv: str | Path, out_dir: str | Pat
     if index == "auto" and ram_budget_mb is None:
         raise MapError("--index auto needs --ram-budget-mb")
     extra_opts = (ram_budget_mb, max_submap_size, rerank_factor)
+    check_not_inside(out_dir, [images_dir if isinstance(images_dir, Path) else None,
+                               coords_csv], allow_out_inside=True)
     fp = _fingerprint(rows, desc, partition, clusters,
                       index if extra_opts == (None, None, DEFAULT_RERANK_FACTOR)
                       else [index, *extra_opts])
-    work = out_dir / ".build"
-    if (out_dir / MANIFEST).exists():
-        old = json.loads((out_dir / MANIFEST).read_text()).get("source", {}).get("fingerprint")
-        if old == fp and not overwrite:
-            log.info("map %s is up to date", out_dir)
-            return ReferenceMap.load(out_dir)
-        if not overwrite:
-            raise MapError(f"{out_dir} already holds a different map; pass --overwrite to "
-                           "replace it")
-        shutil.rmtree(out_dir)
-    elif out_dir.exists() and any(p.name != ".build" for p in out_dir.iterdir()):
-        if not overwrite:
-            raise MapError(f"{out_dir} exists and is not a map; pass --overwrite or choose "
-                           "another --out")
-        shutil.rmtree(out_dir)
+    local = images_dir if isinstance(images_dir, Path) else _local_path(str(images_dir))
+    fp_images = images_fingerprint(local, rows) if local is not None else ""
+    if (out_dir / MANIFEST).is_file() and written_by_us(out_dir, "map") and not overwrite:
+        try:
+            source = json.loads((out_dir / MANIFEST).read_text(encoding="utf-8")).get("source")
+        except (OSError, ValueError, AttributeError):
+            source = None
+        source = source if isinstance(source, dict) else {}
+        if source.get("fingerprint") == fp:
+            if source.get("images_fingerprint") in (None, fp_images):
+                log.info("map %s is up to date", out_dir)
+                return ReferenceMap.load(out_dir)
+            raise MapError(f"{out_dir} is out of date: reference images in {images_dir} were "
+                           "deleted, replaced or modified since it was built; pass --overwrite "
+                           "to rebuild it")
+        raise MapError(f"{out_dir} already holds a different map (other images or settings); "
+                       "pass --overwrite to replace it (the old map stays until the new one is "
+                       "complete)")
+    with StagedOutput(out_dir, "map", overwrite, resumable=True) as stage:
+        ref_map = _build_staged(images_dir, rows, desc, stage, fp, fp_images, partition,
+                                clusters, seed, index, progress, out_dir, engine,
+                                extra_opts)
+    ref_map.path = out_dir
+    return ref_map
+
+
+def _build_staged(images_dir: Any, rows, desc: GlobalDescriptor, stage: StagedOutput, fp: str,
+                  fp_images: str, partition: str, clusters: int, seed: int, index: str,
+                  progress: bool, out_dir: Path, engine: Any = None,
+                  extra_opts: tuple = (None, None, DEFAULT_RERANK_FACTOR)) -> ReferenceMap:
+    ram_budget_mb, max_submap_size, rerank_factor = extra_opts
+    work = stage.work
     work.mkdir(parents=True, exist_ok=True)
     job = work / "job.json"
-    if job.exists() and json.loads(job.read_text()).get("fingerprint") != fp:
-        log.info("discarding a partial build with other settings")
-        shutil.rmtree(work)
-        work.mkdir(parents=True)
-    atomic_write_json(job, {"fingerprint": fp, "n": len(rows)})
+    if job.exists():
+        try:
+            old = json.loads(job.read_text()).get("fingerprint")
+        except (OSError, ValueError, AttributeError):
+            old = None
+        if old != [fp, fp_images]:
+            log.info("discarding a partial build with other settings or images")
+            shutil.rmtree(work)
+            work.mkdir(parents=True)
+        else:
+            log.info("resuming the partial build in %s", stage.root)
+    atomic_write_json(job, {"fingerprint": [fp, fp_images], "n": len(rows)})
     t0 = time.monotonic()
     if engine is not None:
         feats, ok = engine.describe(desc, images_dir, rows, work, progress)
@@ -199,13 +264,19 @@ def build_map(images_dir: str | Path, coords_csv: str | Path, out_dir: str | Pat
     coords = np.array([[rows[i][1], rows[i][2]] for i in keep], dtype=np.float64)
     ids = [rows[i][0] for i in keep]
     ref_map = assemble_map(feats[keep], coords, ids, identity, desc.state_arrays(), partition,
-                           clusters, seed, extra={"fingerprint": fp, "rows": len(rows),
+                           clusters, seed, extra={"fingerprint": fp, "images_fingerprint":
+                                                  fp_images, "rows": len(rows),
                                                   "skipped": skipped}, index=index,
                            ram_budget_mb=ram_budget_mb, max_submap_size=max_submap_size,
                            rerank_factor=rerank_factor, engine=engine)
-    ref_map.save(out_dir)
-    shutil.rmtree(work, ignore_errors=True)
+    if stage.path.exists():
+        shutil.rmtree(stage.path)  # a half-saved folder of an earlier attempt
+    ref_map.save(stage.path)
+    stage.commit(validate=lambda p: ReferenceMap.load(p))
     dt = time.monotonic() - t0
+    if skipped:
+        log.warning("skipped %d unreadable reference image(s): %s%s", len(skipped),
+                    ", ".join(skipped[:10]), " ..." if len(skipped) > 10 else "")
     log.info("built map %s: %d references (%d skipped), %d submaps, %.1f s (%.1f img/s)",
              out_dir, len(keep), len(skipped), len(ref_map.submaps), dt, len(rows) / dt)
     return ref_map

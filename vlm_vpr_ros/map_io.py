@@ -31,7 +31,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from vlm_vpr_ros import __version__
-from vlm_vpr_ros.errors import MapError
+from vlm_vpr_ros.errors import MapError, OutputError
 
 log = logging.getLogger(__name__)
 
@@ -46,13 +46,27 @@ IDENTITY_KEYS = ("name", "dim", "release", "preprocessing")
 
 # -- atomic file helpers ----------------------------------------------------------------------
 def atomic_write_bytes(path: Path, data: bytes) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
+    """Write through ``.NAME.tmpPID`` + ``os.replace``; on any OS error (disk full, no
+    permission) the temporary file is removed and an OutputError says what happened."""
+    from vlm_vpr_ros.outputs import describe_os_error
+
+    path = Path(path)
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    with open(tmp, "wb") as fh:
-        fh.write(data)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with open(tmp, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        if isinstance(exc, OutputError):
+            raise
+        raise OutputError(describe_os_error(exc, path)) from None
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 def atomic_write_json(path: Path, obj: Any) -> None:

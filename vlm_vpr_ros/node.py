@@ -32,6 +32,7 @@ from rclpy.node import Node
 from vlm_vpr_ros.errors import ConfigError, VlmVprError
 from vlm_vpr_ros.node_config import requested_parameters
 from vlm_vpr_ros.node_wiring import _Wiring, image_qos  # noqa: F401
+from vlm_vpr_ros.redact import redact
 
 NODE_NAME = "vlm_vpr_node"
 
@@ -47,6 +48,7 @@ class _RosLogHandler(logging.Handler):
         text = f"[{record.name}] {record.getMessage()}"
         if record.exc_info and record.exc_info[1] is not None:
             text += f": {record.exc_info[1]!r}"
+        text = redact(text)  # the one redaction point (vlm_vpr_ros.redact)
         if record.levelno >= logging.ERROR:
             self._logger.error(text)
         elif record.levelno >= logging.WARNING:
@@ -129,7 +131,7 @@ class VlmVprLifecycleNode(_Wiring, LifecycleNode):
 
 
 def _fatal(logger, exc: Exception) -> int:
-    logger.fatal(f"invalid configuration, not starting: {exc}")
+    logger.fatal(redact(f"invalid configuration, not starting: {exc}"))
     rclpy.try_shutdown()
     return 2
 

@@ -16,7 +16,7 @@ from typing import Any
 from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
                                 ParameterType)
-from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from rclpy.qos_overriding_options import InvalidQosOverridesError, QoSOverridingOptions
@@ -129,8 +129,12 @@ class _Wiring:
         self.fix_pub = make_publisher(NavSatFix, "fix", 10)
         self.diag_pub = make_publisher(DiagnosticArray, "/diagnostics", 10)
         group = MutuallyExclusiveCallbackGroup
-        self._reloc_srv = self.create_service(Trigger, "relocalize", self._on_relocalize,
-                                              callback_group=group())
+        # reentrant + a deep request queue: a burst of calls all get an answer (the runtime
+        # lets two wait for the shared query and answers the others at once)
+        self._reloc_srv = self.create_service(
+            Trigger, "relocalize", self._on_relocalize,
+            qos_profile=QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE),
+            callback_group=ReentrantCallbackGroup())
         self._reload_srv = self.create_service(Trigger, "map_reload", self._on_map_reload,
                                                callback_group=group())
         self._diag_timer = self.create_timer(cfg.diagnostics_period_s, self._publish_diagnostics,
@@ -216,15 +220,8 @@ class _Wiring:
             response.success = False
             response.message = f"{self.get_name()} is not active: activate it first"
             return response
-        t0 = time.monotonic()
-        ticket = runtime.request_relocalize()
-        if self.cfg.relocalize_wait_s <= 0:
-            response.success = True
-            response.message = ("relocalization scheduled on the latest or next frame; the fix "
-                                f"will be published on {self.resolve_topic_name('fix')}")
-            return response
-        outcome = ticket.wait(self.cfg.relocalize_wait_s)
-        response.success, response.message = outcome_summary(outcome, time.monotonic() - t0)
+        response.success, response.message = runtime.relocalize(
+            self.cfg.relocalize_wait_s, self.resolve_topic_name("fix"))
         return response
 
     def _on_map_reload(self, request, response):

@@ -103,8 +103,9 @@ class QueryRuntime:
                  on_outcome: Callable[[QueryOutcome], None],
                  encoded: Callable[[Any], bytes | None] | None = None,
                  clock: Callable[[], float] = time.monotonic,
-                 stats: RuntimeStats | None = None) -> None:
+                 stats: RuntimeStats | None = None, max_waiters: int = 2) -> None:
         self.pipeline, self.provider, self.config = pipeline, provider, config
+        self._waiters = threading.BoundedSemaphore(max(1, max_waiters))
         self._decode, self._encoded, self._on_outcome = decode, encoded, on_outcome
         self._clock = clock
         self.stats = stats if stats is not None else RuntimeStats(provider.name, config.mode)
@@ -161,6 +162,27 @@ class QueryRuntime:
                    f"{nm.manifest.get('generation', 0)})")
             log.info("%s", msg)
             return True, msg
+
+    def relocalize(self, wait_s: float, fix_topic: str = "fix") -> tuple[bool, str]:
+        """Answer one relocalize call: (success, sentence) within ``wait_s`` at most.
+
+        Every call joins the one pending request (concurrent calls share one query). At most
+        ``max_waiters`` calls wait for its outcome at a time (each holds an executor thread);
+        the others are answered at once that the shared relocalization is scheduled, so a burst
+        of calls never starves the executor and every call gets an answer."""
+        t0 = time.monotonic()
+        ticket = self.request_relocalize()
+        if wait_s <= 0:
+            return True, ("relocalization scheduled on the latest or next frame; the fix will "
+                          f"be published on {fix_topic}")
+        if not self._waiters.acquire(blocking=False):
+            return False, ("busy: a relocalization is already scheduled and shared by the "
+                           f"pending requests; its fix will be published on {fix_topic}")
+        try:
+            outcome = ticket.wait(wait_s)
+        finally:
+            self._waiters.release()
+        return outcome_summary(outcome, time.monotonic() - t0)
 
     # -- lifecycle -----
     def start(self) -> None:

@@ -33,7 +33,7 @@ def run_bag_demo(out_dir: str | os.PathLike[str], map_dir: str | os.PathLike[str
     pipe = LocalizationPipeline.open(map_dir)
     try:
         res = evaluate_bag(open_bag(bag_dir), pipe, provider, out / "evaluation",
-                           progress=False)
+                           progress=False, overwrite=True)
     finally:
         provider.close()
     info = {"bag": str(bag_dir)}

@@ -81,13 +81,36 @@ def _with_priors(frames: Iterator[Frame], provider: PriorProvider,
 
 def evaluate_bag(bag: BagReader, pipeline: Any, provider: PriorProvider,
                  out_dir: str | os.PathLike[str], config: BagEvalConfig | None = None,
-                 progress: bool = True, plots: bool = True) -> dict:
-    """Run the whole evaluation; returns ``{"n", "accuracy", "median_km", "details"}``."""
+                 progress: bool = True, plots: bool = True, overwrite: bool = False) -> dict:
+    """Run the whole evaluation; returns ``{"n", "accuracy", "median_km", "details"}``.
+
+    ``out_dir`` is written next to itself and swapped in when complete
+    (:mod:`vlm_vpr_ros.outputs`): never inside the bag, and an existing folder is replaced
+    only with ``overwrite`` and only when it is an earlier evaluation."""
+    from vlm_vpr_ros.outputs import StagedOutput, check_not_inside
+
+    check_not_inside(out_dir, [bag.path])
+    with StagedOutput(out_dir, "evaluation", overwrite) as stage:
+        try:
+            result = _evaluate(bag, pipeline, provider, stage.path, Path(out_dir), config,
+                               progress, plots)
+        except _NoUsableFrame as exc:
+            stage.commit()  # frames.csv holds the per-frame reasons: keep it
+            raise BagError(f"{exc} (per-frame reasons in {Path(out_dir) / 'frames.csv'})") \
+                from None
+        stage.commit()
+    return result
+
+
+class _NoUsableFrame(BagError):
+    pass
+
+
+def _evaluate(bag: BagReader, pipeline: Any, provider: PriorProvider, out: Path, final: Path,
+              config: BagEvalConfig | None, progress: bool, plots: bool) -> dict:
     from vlm_vpr_ros.bags.messages import IMAGE_TYPES, NAVSATFIX
 
     cfg = config or BagEvalConfig()
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     img = bag.find_topic(IMAGE_TYPES, cfg.image_topic, "camera images")
     gt_info = bag.find_topic((NAVSATFIX,), cfg.gt_topic, "ground truth")
     gt = read_ground_truth(bag, gt_info.name)
@@ -109,17 +132,19 @@ def evaluate_bag(bag: BagReader, pipeline: Any, provider: PriorProvider,
     _write_csv(out / "frames.csv", rows)
     decoded = sum(1 for r in rows if "image_error" not in r["flags"])
     if rows and decoded == 0:
-        raise BagError(f"none of the {len(rows)} frames on {img.name} could be used; first "
-                       f"error: {errors[0] if errors else 'unknown'} (per-frame reasons in "
-                       f"{out / 'frames.csv'})")
+        raise _NoUsableFrame(f"none of the {len(rows)} frames on {img.name} could be used; "
+                             f"first error: {errors[0] if errors else 'unknown'}")
     scored = [r for r in rows if r["gt_lat"] != ""]
     errs = [None if r["error_km"] == "" else float(r["error_km"]) for r in scored]
     summary = summarize(errs)
-    outputs = {"frames_csv": str(out / "frames.csv"), "summary_json": str(out / "summary.json")}
+    outputs = {"frames_csv": "frames.csv", "summary_json": "summary.json"}
     if est_msgs:
-        outputs["estimates_bag"] = str(_write_estimates(out / "estimates", est_msgs))
+        _write_estimates(out / "estimates", est_msgs)
+        outputs["estimates_bag"] = "estimates"
     if plots and scored:
-        outputs.update(_plots(out, scored, summary, bag.path))
+        outputs.update({k: Path(v).name for k, v in _plots(out, scored, summary,
+                                                           bag.path).items()})
+    outputs = {k: str(final / v) for k, v in outputs.items()}  # where they are after the swap
     details = {
         "bag": str(bag.path), "image_topic": img.name, "gt_topic": gt_info.name,
         "frames": len(rows), "frames_scored": len(scored),
@@ -154,6 +179,11 @@ def _localize_frame(frame: Frame, fut: Any, pipeline: Any, provider: PriorProvid
         except VlmVprError as exc:
             row.update({"flags": "error", "prior_reason": str(exc)})
             errors.append(f"frame {frame.index}: {exc}")
+        except Exception as exc:  # noqa: BLE001 - one bad frame must not lose the others
+            log.warning("frame %d: internal error %s: %s", frame.index, type(exc).__name__, exc)
+            row.update({"flags": "error", "prior_reason": f"internal error: "
+                                                          f"{type(exc).__name__}: {exc}"})
+            errors.append(f"frame {frame.index}: {type(exc).__name__}: {exc}")
     if hyp is not None:
         row.update(hyp.as_row())
         row.update({k: f"{v:.2f}" for k, v in hyp.timings_ms.items() if k in row})

@@ -33,19 +33,35 @@ def make_bag(images_dir: str | os.PathLike[str], coords_csv: str | os.PathLike[s
     ``NavSatFix`` ground truth of the same stamp. With ``compressed`` JPEG/PNG files are stored
     as they are (no re-encoding). Returns paths, topics and counts; ``frames.csv`` beside the
     bag maps stamps back to file names (so recorded priors keyed by file can be used)."""
-    from vlm_vpr_ros.imageio import decode_image_bytes, encode_jpeg
     from vlm_vpr_ros.map_build import read_coords_csv
+    from vlm_vpr_ros.outputs import StagedOutput, check_not_inside
 
     if not (rate_hz > 0 and rate_hz < 1e6):
         raise ConfigError(f"--rate must be a positive frequency in Hz, got {rate_hz}")
     images_dir = Path(images_dir)
     rows = read_coords_csv(coords_csv)
+    check_not_inside(out, [images_dir, coords_csv], allow_out_inside=True)
+    with StagedOutput(out, "bag", overwrite) as stage:
+        info = _make(images_dir, rows, coords_csv, stage.path, rate_hz, compressed,
+                     topic_prefix, gt_topic, frame_id, start_time_ns, compression, progress)
+        stage.commit()
+    info["bag"] = str(out)
+    log.info("bag %s: %d frames on %s + %s (%d skipped)", out, info["frames"],
+             info["image_topic"], gt_topic, len(info["skipped"]))
+    return info
+
+
+def _make(images_dir: Path, rows, coords_csv, out: Path, rate_hz: float, compressed: bool,
+          topic_prefix: str, gt_topic: str, frame_id: str, start_time_ns: int | None,
+          compression: str, progress: bool) -> dict:
+    from vlm_vpr_ros.imageio import decode_image_bytes, encode_jpeg
+
     period_ns = int(round(1e9 / rate_hz))
     t0 = int(start_time_ns if start_time_ns is not None else now_ns())
     img_topic = image_topic_name(topic_prefix, compressed)
     sidecar, skipped = [], []
     qos_img = [qos_profile(depth=10)]
-    with Rosbag2McapWriter(out, compression=compression, overwrite=overwrite) as bag:
+    with Rosbag2McapWriter(out, compression=compression, overwrite=True) as bag:
         bag.add_topic(img_topic, COMPRESSED if compressed else IMAGE, qos_img)
         bag.add_topic(gt_topic, NAVSATFIX, [qos_profile(depth=10)])
         it = rows
@@ -79,6 +95,4 @@ def make_bag(images_dir: str | os.PathLike[str], coords_csv: str | os.PathLike[s
     info = {"bag": str(out), "image_topic": img_topic, "gt_topic": gt_topic,
             "frames": len(sidecar), "skipped": skipped,
             "duration_s": (len(sidecar) - 1) * period_ns / 1e9}
-    log.info("bag %s: %d frames on %s + %s (%d skipped)", out, len(sidecar), img_topic,
-             gt_topic, len(skipped))
     return info

@@ -292,10 +292,13 @@ def build_map_from_bag(bag_path: str | os.PathLike[str], out_dir: str | os.PathL
     from vlm_vpr_ros.map_edit import attach_images
     from vlm_vpr_ros.map_io import ReferenceMap, atomic_write_json
 
+    from vlm_vpr_ros.outputs import check_target
+
     out = Path(out_dir)
     if out.exists() and not overwrite:
         raise MapError(f"{out} already exists; pass --overwrite to replace it or choose another "
                        "--out")
+    check_target(out, "map", overwrite)  # --overwrite replaces a map, never a user's folder
     out.parent.mkdir(parents=True, exist_ok=True)
     stage = out.with_name(f".{out.name}.teach{os.getpid()}")
     shutil.rmtree(stage, ignore_errors=True)

@@ -8,6 +8,7 @@ import importlib
 import logging
 import sys
 
+from vlm_vpr_ros import redact
 from vlm_vpr_ros.errors import VlmVprError
 
 log = logging.getLogger("vlm_vpr_ros")
@@ -50,19 +51,37 @@ def main(argv: list[str] | None = None) -> int:
     # The CLI (not the library) configures logging; logs go to stderr so --json stays clean.
     # Default: our INFO messages, other libraries' warnings; -v: everything at INFO; -vv: DEBUG.
     root_level = {0: logging.WARNING, 1: logging.INFO}.get(args.verbose, logging.DEBUG)
-    logging.basicConfig(level=root_level, stream=sys.stderr,
-                        format="%(levelname)s %(name)s: %(message)s")
+    # Every record goes through the one redaction point (vlm_vpr_ros.redact): no key in a log.
+    handler = logging.StreamHandler(sys.stderr)
+    redact.install(handler, "%(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(level=root_level, handlers=[handler])
     logging.getLogger("vlm_vpr_ros").setLevel(
         logging.WARNING if args.quiet else min(root_level, logging.INFO))
     try:
         rc = args.func(args)
     except VlmVprError as exc:
-        log.error("%s", exc)
+        log.error("%s", one_line(exc))
         return 2
     except KeyboardInterrupt:
         log.warning("interrupted")
         return 130
+    except OSError as exc:  # disk full, permissions, a vanished file: one line, no traceback
+        from vlm_vpr_ros.outputs import describe_os_error
+
+        log.error("%s", describe_os_error(exc) if exc.filename else one_line(exc))
+        log.debug("details", exc_info=True)
+        return 2
+    except Exception as exc:  # noqa: BLE001 - a bug: one line here, the traceback with -vv
+        log.error("internal error %s: %s (please report it; -vv shows the traceback)",
+                  type(exc).__name__, one_line(exc))
+        log.debug("traceback", exc_info=True)
+        return 1
     return int(rc or 0)
+
+
+def one_line(exc: BaseException) -> str:
+    """An exception's message on one line (newlines in paths or keys never split it)."""
+    return " ".join(str(exc).split()) or type(exc).__name__
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -72,6 +72,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     _frame_args(e)
     e.add_argument("--out", default=None, metavar="DIR",
                    help="output folder (default: BAG_eval next to the bag)")
+    e.add_argument("--overwrite", action="store_true",
+                   help="replace an earlier evaluation folder (kept until the new one is "
+                        "complete)")
     e.add_argument("--no-plots", action="store_true")
     e.add_argument("--json", action="store_true", help="print only a JSON object on stdout")
     add_descriptor_option_args(e)
@@ -202,6 +205,10 @@ def cmd_evaluate_bag(args: argparse.Namespace) -> int:
     bag.find_topic(IMAGE_TYPES, args.image_topic, "camera images")  # fail before loading
     bag.find_topic((NAVSATFIX,), args.gt_topic, "ground truth")
     out = Path(args.out) if args.out else Path(str(Path(args.bag)).rstrip("/") + "_eval")
+    from vlm_vpr_ros.outputs import check_not_inside, check_target
+
+    check_not_inside(out, [bag.path])  # fail before loading the map
+    check_target(out, "evaluation", args.overwrite)
     pipe = LocalizationPipeline.open(args.map, localizer=localizer_config(args),
                                      descriptor_config=descriptor_options(args))
     cfg = BagEvalConfig(image_topic=args.image_topic, gt_topic=args.gt_topic,
@@ -209,7 +216,8 @@ def cmd_evaluate_bag(args: argparse.Namespace) -> int:
                         prior_timeout_s=args.prior_timeout)
     provider = make_prior_provider(args)
     try:
-        res = evaluate_bag(bag, pipe, provider, out, cfg, plots=not args.no_plots)
+        res = evaluate_bag(bag, pipe, provider, out, cfg, plots=not args.no_plots,
+                           overwrite=args.overwrite)
     finally:
         provider.close()
     if args.json:

@@ -6,10 +6,11 @@ import argparse
 import json
 import logging
 import sys
+from pathlib import Path
 
 from vlm_vpr_ros.cli.common import (add_descriptor_option_args, add_localizer_args,
                                     add_prior_args, descriptor_options, localizer_config,
-                                    make_prior_provider, write_csv_atomic)
+                                    make_prior_provider)
 from vlm_vpr_ros.cli.distributed import add_engine_args, cmd_build_map_ray, engine_options
 from vlm_vpr_ros.errors import ConfigError, DataError, MapError
 
@@ -66,7 +67,15 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="precomputed (n, dim) query descriptors, rows aligned with --queries: "
                         "no descriptor model or weights are loaded")
     p.add_argument("--queries", required=True, metavar="CSV", help="CSV with a 'file' column")
-    p.add_argument("--out", required=True, metavar="RESULTS.csv")
+    p.add_argument("--out", required=True, metavar="RESULTS.csv",
+                   help="results CSV, written row by row to RESULTS.csv.partial and renamed "
+                        "when all queries are done")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--resume", action="store_true",
+                   help="continue an interrupted run: keep the rows of RESULTS.csv(.partial), "
+                        "localize the remaining (and failed) queries")
+    g.add_argument("--overwrite", action="store_true",
+                   help="replace an existing results CSV (kept until the new one is complete)")
     p.add_argument("--descriptor", default=None, metavar="NAME",
                    help="expected descriptor (error if the map was built with another)")
     add_descriptor_option_args(p)
@@ -186,31 +195,76 @@ def cmd_build_map(args: argparse.Namespace) -> int:
     return 0
 
 
+def _localize_start(out: Path, resume: bool, overwrite: bool) -> list[dict]:
+    """Check ``--out`` and return the rows kept from an earlier run (``--resume``)."""
+    from vlm_vpr_ros.batch import is_results_csv, read_done_rows
+    from vlm_vpr_ros.errors import OutputError
+
+    partial = out.with_name(out.name + ".partial")
+    if out.is_dir():
+        raise OutputError(f"--out {out} is a folder; give a results CSV file name")
+    if out.exists() and not is_results_csv(out):
+        raise OutputError(f"{out} exists and is not a results CSV of 'vlm-vpr localize'; it is "
+                          "left untouched: choose another --out")
+    if resume:
+        source = partial if partial.is_file() else out if out.is_file() else None
+        rows = read_done_rows(source) if source is not None else []
+        if source is not None:
+            log.info("resuming from %s: %d finished rows kept", source, len(rows))
+        return rows
+    if out.exists() and not overwrite:
+        raise OutputError(f"{out} already exists; pass --resume to continue it or --overwrite "
+                          "to replace it (the old file stays until the new one is complete)")
+    if partial.is_file() and not overwrite:
+        raise OutputError(f"an interrupted run left {partial}; pass --resume to continue it or "
+                          "--overwrite to start over")
+    return []
+
+
 def cmd_localize(args: argparse.Namespace) -> int:
     from vlm_vpr_ros.map_build import read_file_column
 
+    out = Path(args.out)
     files = read_file_column(args.queries)
+    done = _localize_start(out, args.resume, args.overwrite)
     if args.query_descriptors:
         return _localize_descriptors(args, files)
     if not args.images:
         raise DataError("localize needs --images DIR (or --query-descriptors Q.npy)")
-    from vlm_vpr_ros.batch import RESULT_FIELDS, localize_files
+    from vlm_vpr_ros.batch import ResultsStream, localize_files
     from vlm_vpr_ros.pipeline import LocalizationPipeline
 
     pipe = LocalizationPipeline.open(args.map, descriptor=args.descriptor,
                                      localizer=localizer_config(args),
                                      descriptor_config=descriptor_options(args))
+    finished = {r["file"] for r in done}
+    todo = [f for f in files if f not in finished]
     provider = make_prior_provider(args)
     from tqdm import tqdm
 
+    stream = ResultsStream(out, [r for r in done if r["file"] in set(files)])
     try:
-        rows = list(tqdm(localize_files(pipe, provider, args.images, files, args.prior_timeout),
-                         total=len(files), desc="localize", unit="img", disable=None))
+        for row in tqdm(localize_files(pipe, provider, args.images, todo, args.prior_timeout),
+                        total=len(todo), desc="localize", unit="img", disable=None):
+            stream.write(row)
+    except OSError as exc:  # disk full / permissions while streaming
+        from vlm_vpr_ros.errors import OutputError
+        from vlm_vpr_ros.outputs import describe_os_error
+
+        raise OutputError(f"{describe_os_error(exc, stream.partial)}; {len(stream.rows)} "
+                          f"rows kept there: continue with --resume") from None
+    except KeyboardInterrupt:
+        stream.close()
+        log.warning("%d of %d rows kept in %s; run the same command with --resume to continue",
+                    len(stream.rows), len(files), stream.partial)
+        raise
     finally:
+        stream.close()
         provider.close()
-    write_csv_atomic(args.out, RESULT_FIELDS, rows)
-    flagged = sum(1 for r in rows if r.get("flags"))
-    print(f"{len(rows)} queries localized -> {args.out} ({flagged} with flags)")
+    stream.finish(files)
+    flagged = sum(1 for r in stream.rows if r.get("flags"))
+    resumed = f", {len(stream.rows) - len(todo)} kept from the earlier run" if done else ""
+    print(f"{len(stream.rows)} queries localized -> {args.out} ({flagged} with flags{resumed})")
     return 0
 
 
@@ -218,6 +272,7 @@ def _localize_descriptors(args: argparse.Namespace, files: list[str]) -> int:
     from tqdm import tqdm
 
     from vlm_vpr_ros.batch import RESULT_FIELDS
+    from vlm_vpr_ros.csvio import write_csv_atomic
     from vlm_vpr_ros.localizer import Localizer
     from vlm_vpr_ros.map_io import ReferenceMap
     from vlm_vpr_ros.maps.query import localize_descriptors, open_query_descriptors

@@ -55,5 +55,7 @@ def create_prior_provider(name: str, config: Mapping[str, Any] | None = None) ->
                               f"valid: {sorted(params)}")
     try:
         return factory(**config)
-    except TypeError as exc:
-        raise ConfigError(f"prior provider {name!r}: {exc}") from exc
+    except (TypeError, ValueError) as exc:
+        if isinstance(exc, ConfigError):
+            raise
+        raise ConfigError(f"prior provider {name!r}: invalid option value: {exc}") from None

@@ -32,6 +32,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from vlm_vpr_ros.errors import ConfigError
+from vlm_vpr_ros.redact import redact, register_secret
 
 log = logging.getLogger(__name__)
 
@@ -111,14 +112,24 @@ class ChatClient:
                  max_retries: int = 3, backoff_s: float = 1.0, max_backoff_s: float = 30.0,
                  max_retry_after_s: float = 120.0, min_interval_s: float = 0.0,
                  rng: random.Random | None = None) -> None:
-        url = urllib.parse.urlsplit(base_url.strip())
-        if url.scheme not in ("http", "https") or not url.hostname:
-            raise ConfigError(f"base_url must be an http(s) URL, got {base_url!r}")
+        try:
+            url = urllib.parse.urlsplit(str(base_url).strip())
+            url.port  # noqa: B018 - raises ValueError on a bad port
+        except ValueError:
+            url = None
+        if url is None or url.scheme not in ("http", "https") or not url.hostname:
+            raise ConfigError(f"base_url must be an http(s) URL, got {redact(base_url)!r}")
         if timeout_s <= 0 or max_retries < 0 or backoff_s < 0 or min_interval_s < 0:
             raise ConfigError("timeout_s must be > 0; max_retries, backoff_s and "
                               "min_interval_s must be >= 0")
+        register_secret(url.password)  # never log a key given as URL userinfo
+        register_secret(url.username)
         self._url = url
-        self.endpoint = f"{url.scheme}://{url.netloc}{url.path.rstrip('/')}/chat/completions"
+        self._path = f"{url.path.rstrip('/')}/chat/completions"
+        host = url.hostname or ""
+        host = f"[{host}]" if ":" in host else host
+        #: the URL as logged: no userinfo
+        self.endpoint = f"{url.scheme}://{host}{f':{url.port}' if url.port else ''}{self._path}"
         self.__api_key = api_key or None
         self.timeout_s = float(timeout_s)
         self.max_retries = int(max_retries)
@@ -193,7 +204,7 @@ class ChatClient:
     def _connection(self) -> tuple[http.client.HTTPConnection, str]:
         url = self._url
         host, port = url.hostname or "", url.port
-        path = self.endpoint[len(f"{url.scheme}://{url.netloc}"):]
+        path = self._path
         proxy = None
         if not host.startswith(_LOOPBACK) and not urllib.request.proxy_bypass(host):
             proxy = urllib.request.getproxies().get(url.scheme)

@@ -39,7 +39,10 @@ _INFO_KEYS = ("continent", "country", "region", "city", "neighborhood", "place",
 
 _FENCE = re.compile(r"```[ \t]*([A-Za-z0-9_-]*)[ \t]*\r?\n?(.*?)```", re.S)
 _PAPER_NUM = re.compile(r"[-+]?\d*\.\d+|\d+")
-_NUM = r"[-+−]?\d{1,3}(?:[.,]\d+)?"
+# a decimal number, optionally in scientific notation; never a prefix of a longer number
+# ("1e400" is inf -> out of range, "0.1e3" is 100, "1234.5" is not 123)
+# (bounded repeats + look-arounds: linear time on a 100 000-digit answer)
+_NUM = r"(?<![\d.])[-+−]?\d{1,12}(?:[.,]\d{1,15})?(?:[eE][-+]?\d{1,4})?(?![\d.]\d|\d)"
 _HEMI = r"(?:[NSEW]|north|south|east|west)\b"
 _DEG = r"\s*(?:°|º|˚|deg(?:rees?)?\b|degs?\b)?"
 # one coordinate value: DMS / DM, or decimal with optional degree sign and hemisphere
@@ -121,14 +124,26 @@ def _scalar(value: Any, axis: str) -> float | None:
     """A JSON value as degrees: numbers, numeric strings, and (not strict) '27.1° N' forms."""
     if isinstance(value, bool):
         return None
-    if isinstance(value, (int, float)):
-        return float(value)
-    if isinstance(value, str):
+    if isinstance(value, int):
         try:
-            return float(value.strip())
-        except ValueError:
+            return float(value)
+        except OverflowError:  # a 400-digit integer
+            return math.inf
+    if isinstance(value, float):
+        return value
+    if isinstance(value, str):
+        v = value.strip()
+        if not _PLAIN_FLOAT.match(v):  # not "1_0" (a Python-only spelling); nan/inf: range
+            return None
+        try:
+            return float(v)
+        except (ValueError, OverflowError):
             return None
     return None
+
+
+_PLAIN_FLOAT = re.compile(r"^[-+]?(?:(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?|nan|inf(?:inity)?)$",
+                          re.I)
 
 
 def _lenient_scalar(value: Any, axis: str) -> float | None:
@@ -190,7 +205,7 @@ def _strict(text: str) -> Iterator[tuple[float, float, str, dict]]:
 
 # --- free text -------------------------------------------------------------------------------
 def _num(s: str) -> float:
-    return float(s.replace("−", "-").replace(",", "."))
+    return float(s.replace("−", "-").replace(",", "."))  # "1e400" -> inf: out of range
 
 
 def _dms(d: str, m: str | None, s: str | None) -> float:

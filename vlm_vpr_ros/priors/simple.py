@@ -44,22 +44,25 @@ class FixedPrior(PriorProvider):
 
 
 def read_prior_csv(path: str | os.PathLike[str]) -> dict[str, tuple[float, float]]:
-    """Read a ``file, lat, lon`` CSV into {file: (lat, lon)}; blank/invalid rows are skipped."""
-    out: dict[str, tuple[float, float]] = {}
+    """Read a ``file, lat, lon`` CSV into {file: (lat, lon)}; blank/invalid rows are skipped
+    (counted in a warning); a file repeated with other coordinates is a DataError."""
+    from vlm_vpr_ros.csvio import read_rows, unique_rows
+
+    items = []
     bad = 0
-    for row in read_table(path, ("file", "lat", "lon"), "priors CSV"):
+    for n, row in read_rows(path, "priors CSV", ("file", "lat", "lon"))[1]:
         try:
             lat, lon = float(row["lat"]), float(row["lon"])
         except (TypeError, ValueError):
             bad += 1
             continue
         if valid_latlon(lat, lon):
-            out[row["file"]] = (lat, lon)
+            items.append((n, row["file"], (lat, lon)))
         else:
             bad += 1
     if bad:
         log.warning("%s: %d row(s) without a valid lat/lon are treated as 'no prior'", path, bad)
-    return out
+    return unique_rows(items, path, "file")
 
 
 class RecordedPrior(PriorProvider):

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import base64
 import concurrent.futures as cf
-import csv
 import logging
 import os
 import threading
@@ -32,6 +31,7 @@ from vlm_vpr_ros.priors.cache import AnswerCache, cache_key, image_digest
 from vlm_vpr_ros.priors.openai_client import CallHandle, ChatClient
 from vlm_vpr_ros.priors.parsing import PARSER_MODES, parse_answer
 from vlm_vpr_ros.priors.prompts import build_messages, get_prompt
+from vlm_vpr_ros.redact import ENV_NAME, looks_like_secret, register_secret
 
 log = logging.getLogger(__name__)
 
@@ -53,6 +53,7 @@ def result_from_text(raw: str | None, source: str, parser: str = "robust",
 
 
 def _read_api_key(env: str | None, path: str | None) -> str | None:
+    """The API key from ``api_key_file`` or ``$api_key_env``; registered for redaction."""
     if path:
         try:
             key = Path(path).expanduser().read_text(encoding="utf-8").strip()
@@ -60,12 +61,28 @@ def _read_api_key(env: str | None, path: str | None) -> str | None:
             raise PriorError(f"cannot read api_key_file {path}: {exc.strerror}") from None
         if not key:
             raise PriorError(f"api_key_file {path} is empty")
-        return key
+        register_secret(key)
+        return _check_key(key, f"api_key_file {path}")
+    if env and (looks_like_secret(str(env)) or not ENV_NAME.match(str(env))):
+        register_secret(str(env))
+        raise ConfigError("api_key_env must be the NAME of an environment variable holding the "
+                          "key (e.g. OPENAI_API_KEY), not the key itself; the value given was "
+                          "not logged")
     key = os.environ.get(env or "", "").strip() if env else ""
+    register_secret(key)
+    if key:
+        _check_key(key, f"${env}")
     if not key:
         log.info("no API key in $%s: sending requests without Authorization (fine for local "
                  "servers such as Ollama or vLLM)", env)
     return key or None
+
+
+def _check_key(key: str, where: str) -> str:
+    if any(ord(c) < 32 or ord(c) == 127 for c in key):
+        raise ConfigError(f"the API key in {where} contains a line break or control character "
+                          "(copy-paste error?); the key was not logged")
+    return key
 
 
 def _sniff_mime(data: bytes) -> str | None:
@@ -119,8 +136,12 @@ class OpenAIPrior(PriorProvider):
             self.temperature = float(temperature)
             self.max_tokens = int(max_tokens)
             self.max_image_side = int(max_image_side) if max_image_side else None
+            timeout_s, backoff_s = float(timeout_s), float(backoff_s)
+            max_retries, min_interval_s = int(max_retries), float(min_interval_s)
         except (TypeError, ValueError) as exc:
-            raise ConfigError(f"openai prior: {exc}") from None
+            raise ConfigError(f"openai prior: invalid number ({exc}); timeout_s, backoff_s, "
+                              "min_interval_s, temperature are seconds/floats, max_retries, "
+                              "max_concurrency, max_tokens, max_image_side integers") from None
         if self.max_concurrency < 1 or self.max_tokens < 1:
             raise ConfigError("openai prior: max_concurrency and max_tokens must be >= 1")
         if self.max_image_side is not None and self.max_image_side < 32:
@@ -234,23 +255,16 @@ def _resolve(fut: cf.Future, result: PriorResult) -> None:
 # --- recorded answers ------------------------------------------------------------------------
 def read_answers_csv(path: str | os.PathLike[str]) -> dict[str, str]:
     """{filename: raw response} from a CSV with columns ``filename, response`` (others
-    ignored; ``file`` is accepted for ``filename``)."""
-    path = Path(path)
-    try:
-        fh = path.open(newline="", encoding="utf-8-sig")
-    except OSError as exc:
-        raise DataError(f"cannot read answers CSV {path}: {exc.strerror}") from None
-    with fh:
-        reader = csv.DictReader(fh)
-        cols = [c.strip() for c in reader.fieldnames or []]
-        reader.fieldnames = cols
-        fcol = "filename" if "filename" in cols else "file" if "file" in cols else None
-        if fcol is None or "response" not in cols:
-            raise DataError(f"{path}: needs columns filename,response; has {cols}")
-        try:
-            return {row[fcol]: row["response"] or "" for row in reader if row.get(fcol)}
-        except csv.Error as exc:
-            raise DataError(f"{path}: malformed CSV: {exc}") from None
+    ignored; ``file`` is accepted for ``filename``). A file answered twice with different
+    responses is a DataError naming both lines."""
+    from vlm_vpr_ros.csvio import read_rows, unique_rows
+
+    cols, rows = read_rows(path, "answers CSV")
+    fcol = "filename" if "filename" in cols else "file" if "file" in cols else None
+    if fcol is None or "response" not in cols:
+        raise DataError(f"{path}: needs columns filename,response; has {cols}")
+    return unique_rows(((n, row[fcol], row["response"] or "") for n, row in rows
+                        if row.get(fcol)), path, "filename")
 
 
 class AnswersPrior(PriorProvider):

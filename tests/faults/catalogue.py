@@ -1,0 +1,119 @@
+"""The fault catalogue: every hostile input the suite tries, and the behaviour it asserts.
+
+Each entry is exercised by exactly one test marked ``@pytest.mark.fault("<id>")``;
+``test_zz_catalogue.py`` checks that, and that docs/robustness.md lists the same table. The
+counts in the docs (cases tried, crashes, data lost, secrets leaked) are printed by the suite at
+the end of every run (see conftest.py)."""
+
+from __future__ import annotations
+
+# id -> (area, case, behaviour)
+CATALOGUE: dict[str, tuple[str, str, str]] = {
+    # -- map folder ------------------------------------------------------------------------
+    "map_manifest_truncated": ("map", "manifest.json cut in half",
+                               "exit 2: corrupt manifest"),
+    "map_files_list": ("map", "manifest `files` is a list", "exit 2 naming field `files`"),
+    "map_submaps_int": ("map", "manifest `submaps` is an int", "exit 2 naming field `submaps`"),
+    "map_partition_str": ("map", "manifest `partition` is a string",
+                          "exit 2 naming field `partition`"),
+    "map_submap_no_index": ("map", "a submap entry without `index`",
+                            "exit 2: `submaps[0].files` lacks 'index'"),
+    "map_file_outside": ("map", "manifest names a file `../x`",
+                         "exit 2: points outside the map folder"),
+    "map_ids_outside": ("map", "reference ids `../../etc/passwd`, `/etc/passwd` (re-hashed)",
+                        "exit 2: reference id points outside the images folder"),
+    "map_npy_truncated": ("map", "coords .npy truncated", "exit 2: truncated or modified"),
+    "map_npy_garbage": ("map", "coords .npy replaced by garbage (re-hashed)",
+                        "exit 2: cannot read"),
+    "map_faiss_garbage": ("map", "FAISS index replaced by garbage (re-hashed)",
+                          "exit 2: cannot read FAISS index"),
+    "map_state_garbage": ("map", "descriptor_state.npz garbage (re-hashed)",
+                          "exit 2: cannot read descriptor_state.npz"),
+    "map_up_to_date_images_changed": ("map", "reference image replaced / deleted after the "
+                                             "build", "not 'up to date': exit 2 'out of date'"),
+    # -- CSV inputs --------------------------------------------------------------------------
+    "csv_coords_lat_999": ("csv", "coords CSV with latitude 999",
+                           "exit 2 naming file:line and the value"),
+    "csv_coords_conflict": ("csv", "coords CSV: one file twice with other coordinates",
+                            "exit 2 naming both line numbers"),
+    "csv_coords_repeat": ("csv", "coords CSV: an identical repeated row",
+                          "kept once, warning with the line numbers"),
+    "csv_coords_outside": ("csv", "coords CSV file `../secret.jpg` or `/etc/x.jpg`",
+                           "exit 2: points outside the images folder"),
+    "csv_bom": ("csv", "UTF-8 BOM in coords / ground-truth / priors CSV headers", "accepted"),
+    "csv_gt_lat_999": ("csv", "ground truth with latitude 999 (`evaluate`)",
+                       "exit 2 naming file:line"),
+    "csv_gt_conflict": ("csv", "ground truth: one file twice, other coordinates",
+                        "exit 2 naming both lines"),
+    "csv_priors_conflict": ("csv", "recorded priors: one file twice, other coordinates",
+                            "exit 2 naming both lines"),
+    "csv_answers_conflict": ("csv", "recorded answers: one file twice, other answers",
+                             "exit 2 naming both lines"),
+    "csv_results_binary": ("csv", "results CSV is binary garbage (`evaluate`)",
+                           "exit 2: malformed CSV"),
+    "csv_latin1": ("csv", "coords CSV in Latin-1", "exit 2: malformed CSV"),
+    # -- images --------------------------------------------------------------------------------
+    "image_tiny_reference": ("image", "a 4x4 px reference image",
+                             "skipped and listed in the manifest, build goes on"),
+    "image_huge_reference": ("image", "a reference whose header says 10001x10001 px",
+                             "skipped (named, 'too large') before decoding"),
+    "image_truncated_query": ("image", "a truncated JPEG query", "flagged row `image_error`"),
+    # -- bags ------------------------------------------------------------------------------------
+    "bag_mcap_truncated": ("bag", "MCAP cut at 60 %", "frames read are scored, bag flagged "
+                                                      "incomplete (or exit 2 one line)"),
+    "bag_db3_garbage": ("bag", "a .db3 that is not SQLite", "exit 2 one line"),
+    "bag_metadata_garbage": ("bag", "metadata.yaml is not YAML",
+                             "metadata ignored, frames read from the .mcap (bag untouched)"),
+    # -- weights / answers ------------------------------------------------------------------------
+    "weights_garbage": ("weights", "checkpoint file of random bytes (`weights check`)",
+                        "exit 2 one line"),
+    "answer_1e400": ("answer", '`{"latitude": 1e400, "longitude": 1}` and `Latitude: 1e400`',
+                     "unreadable (out_of_range), never (1, 1)"),
+    "answer_scientific": ("answer", "`0.45e2`, `4.5E1` in JSON and prose", "45.0"),
+    # -- output safety ----------------------------------------------------------------------------
+    "out_build_not_a_map": ("output", "`build-map --overwrite --out ~/docs` (not a map)",
+                            "exit 2, folder untouched, message does not suggest deleting"),
+    "out_build_fails_keeps_old": ("output", "`build-map --overwrite` over a map, new build "
+                                            "fails", "exit 2, old map intact and loadable"),
+    "out_bag_not_a_bag": ("output", "`bag make --overwrite` over a user folder",
+                          "exit 2, folder untouched"),
+    "out_eval_into_bag": ("output", "`evaluate-bag BAG --out BAG`",
+                          "exit 2 before any work, bag untouched"),
+    "out_localize_file": ("output", "`localize --out` an existing non-results file",
+                          "exit 2, file untouched"),
+    "out_localize_exists": ("output", "`localize --out` an existing results file",
+                            "exit 2 unless --overwrite / --resume"),
+    "out_out_is_file": ("output", "`build-map --out` an existing file", "exit 2 one line"),
+    # -- partial results ----------------------------------------------------------------------------
+    "partial_query_exception": ("partial", "IndexError in the localizer for one query (zero "
+                                           "candidates)", "flagged `error` row, run completes"),
+    "partial_interrupt_resume": ("partial", "localize interrupted after 3 rows, then "
+                                            "`--resume`", "3 rows kept, resume finishes; equal "
+                                                          "to an uninterrupted run"),
+    "disk_full_build": ("disk", "ENOSPC at the write layer during `build-map --overwrite`",
+                        "exit 2 one line, no .tmp files, old map intact, re-run resumes"),
+    "disk_full_localize": ("disk", "ENOSPC while streaming localize results",
+                           "exit 2 one line, rows kept, `--resume` finishes"),
+    "kill9_build_resume": ("disk", "kill -9 during `build-map`, then the same command",
+                           "resumes from the saved state (no refit), map valid"),
+    # -- VLM server ---------------------------------------------------------------------------------
+    "vlm_429": ("vlm", "429 with Retry-After, always", "retries, then flagged `http_429`"),
+    "vlm_500": ("vlm", "HTTP 500, always", "retries, then flagged `http_500`"),
+    "vlm_garbage": ("vlm", "200 with non-JSON bytes", "flagged `bad_response`"),
+    "vlm_huge": ("vlm", "200 with a 50 MB body", "read capped at 8 MB: `bad_response`"),
+    "vlm_drip": ("vlm", "one byte every 0.3 s", "per-attempt timeout: `timeout`"),
+    "vlm_reset": ("vlm", "connection reset", "flagged `connection_error`"),
+    "vlm_silence": ("vlm", "request read, never answered", "flagged `timeout`"),
+    "cli_timeout_abc": ("config", "`--prior-option timeout_s=abc`", "exit 2 one line"),
+    # -- secrets --------------------------------------------------------------------------------------
+    "secret_url_userinfo": ("secret", "key in `base_url` userinfo, -vv, retries logged",
+                            "canary in no output"),
+    "secret_api_key_env": ("secret", "`--prior-option api_key_env=sk-…` (key by mistake)",
+                           "exit 2, canary in no output"),
+    "secret_key_newline": ("secret", "API key with a newline",
+                           "exit 2, canary in no output (no traceback)"),
+    # -- node -------------------------------------------------------------------------------------------
+    "node_relocalize_burst": ("node", "300 relocalize calls in a burst, VLM hung",
+                              "every call answered; one shared VLM query; canary not in "
+                              "the node log"),
+}

@@ -1,0 +1,100 @@
+"""Fault-injection suite helpers: in-process CLI runs, file snapshots, the catalogue count."""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import shutil
+from pathlib import Path
+
+import pytest
+
+from faults.catalogue import CATALOGUE
+
+_results: dict[str, str] = {}
+
+
+def pytest_configure(config) -> None:
+    config.addinivalue_line("markers", "fault(id): a fault-catalogue case (tests/faults)")
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    outcome = yield
+    rep = outcome.get_result()
+    mark = item.get_closest_marker("fault")
+    if mark is not None and (rep.when == "call" or rep.failed or rep.skipped):
+        prev = _results.get(mark.args[0])
+        if prev in (None, "passed"):
+            _results[mark.args[0]] = rep.outcome
+
+
+def pytest_terminal_summary(terminalreporter) -> None:
+    if not _results:
+        return
+    failed = sorted(k for k, v in _results.items() if v == "failed")
+    terminalreporter.write_line(
+        f"fault suite: {len(_results)} of {len(CATALOGUE)} cases tried, "
+        f"{len(failed)} failed (crash / data lost / secret leaked): {failed or 'none'}")
+
+
+def sha_tree(*paths: Path) -> dict[str, str]:
+    """sha256 of every file under ``paths`` (the user's data, hashed before and after)."""
+    out = {}
+    for root in paths:
+        root = Path(root)
+        files = [root] if root.is_file() else sorted(p for p in root.rglob("*") if p.is_file())
+        for p in files:
+            out[str(p)] = hashlib.sha256(p.read_bytes()).hexdigest()
+    return out
+
+
+class Cli:
+    """Run ``vlm-vpr`` in-process; return code, stdout and the ERROR lines logged."""
+
+    def __init__(self, capsys, caplog) -> None:
+        self.capsys, self.caplog = capsys, caplog
+
+    def __call__(self, *args) -> tuple[int, str, list[str]]:
+        from vlm_vpr_ros.cli import main
+
+        self.caplog.clear()
+        with self.caplog.at_level(logging.INFO):
+            rc = main([str(a) for a in args])
+        out = self.capsys.readouterr()
+        errors = [r.getMessage() for r in self.caplog.records if r.levelno >= logging.ERROR]
+        self.text = out.out + out.err + "\n".join(r.getMessage() for r in self.caplog.records)
+        return rc, out.out, errors
+
+
+@pytest.fixture
+def cli(capsys, caplog) -> Cli:
+    return Cli(capsys, caplog)
+
+
+def exit2(result, *needles: str) -> str:
+    """Assert exit 2 with exactly one one-line error naming ``needles``; return it."""
+    rc, _, errors = result
+    assert rc == 2, (rc, errors)
+    assert len(errors) == 1 and "\n" not in errors[0], errors
+    assert "Traceback" not in errors[0]
+    for n in needles:
+        assert n in errors[0], (n, errors[0])
+    return errors[0]
+
+
+@pytest.fixture
+def map_copy(demo_map, tmp_path) -> Path:
+    """A private copy of the shared demo map (vlad_rootsift_fast, 8 k-means submaps)."""
+    dst = tmp_path / "map"
+    shutil.copytree(demo_map, dst)
+    return dst
+
+
+@pytest.fixture
+def queries(demo_data, tmp_path) -> Path:
+    """A queries CSV of 6 demo images."""
+    names = sorted(p.name for p in (demo_data / "images").iterdir())[:6]
+    q = tmp_path / "queries.csv"
+    q.write_text("file\n" + "\n".join(names) + "\n")
+    return q

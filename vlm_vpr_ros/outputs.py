@@ -1,0 +1,254 @@
+"""Output safety: every folder the tools write is built next to its target and swapped in.
+
+One module for the rules of ``build-map``, ``bag make``, ``evaluate-bag`` (and any later writer,
+e.g. a v2 map build)::
+
+    with StagedOutput(out, "map", overwrite) as stage:   # refuses unsafe targets up front
+        build_into(stage.path)                          # stage.path: PARENT/.NAME.partial/NAME
+        validate(stage.path)                            # e.g. ReferenceMap.load
+        stage.commit()                                  # atomic swap; the old output goes last
+
+* the old output stays untouched until the new one is complete and validated; if anything fails
+  before :meth:`StagedOutput.commit`, the target is exactly as it was;
+* ``overwrite`` only ever replaces a folder this tool wrote (a map manifest, a bag or an
+  evaluation folder carrying :data:`MARKER`); anything else is refused with a message that does
+  not suggest deleting it;
+* :func:`check_not_inside` keeps outputs out of inputs (``evaluate-bag BAG --out BAG``);
+* the staging folder ``PARENT/.NAME.partial`` is fixed, so a resumable writer (the map build)
+  finds its finished work there after a crash or a full disk; a lock file keeps two processes
+  from writing the same target;
+* write failures (disk full, permissions) become :class:`OutputError` with one clear line.
+"""
+
+from __future__ import annotations
+
+import csv
+import errno
+import json
+import logging
+import os
+import shutil
+from pathlib import Path
+from typing import Callable, Iterable
+
+from vlm_vpr_ros.errors import OutputError
+
+log = logging.getLogger(__name__)
+
+#: marker file written into every bag / evaluation folder this tool creates
+MARKER = ".vlm_vpr_output.json"
+KINDS = ("map", "bag", "evaluation")
+
+
+def describe_os_error(exc: OSError, path: str | os.PathLike[str] | None = None) -> str:
+    """One line for a write failure, with a hint for the two common causes."""
+    where = path or exc.filename or "output"
+    why = exc.strerror or str(exc)
+    if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        return f"cannot write {where}: {why} (free some space and run the same command again)"
+    if exc.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
+        return f"cannot write {where}: {why} (choose a folder you can write to)"
+    return f"cannot write {where}: {why}"
+
+
+def _csv_header(path: Path) -> list[str]:
+    try:
+        with path.open(newline="", encoding="utf-8-sig") as fh:
+            return next(csv.reader(fh), [])
+    except (OSError, UnicodeDecodeError, csv.Error):
+        return []
+
+
+def written_by_us(path: Path, kind: str) -> bool:
+    """Whether folder ``path`` is a ``kind`` output this tool wrote (safe to replace)."""
+    marker = path / MARKER
+    if marker.is_file():
+        try:
+            return json.loads(marker.read_text(encoding="utf-8")).get("kind") == kind
+        except (OSError, ValueError, AttributeError):
+            return False
+    if kind == "map":
+        try:
+            manifest = json.loads((path / "manifest.json").read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            return False
+        return isinstance(manifest, dict) and str(manifest.get("format", "")).startswith(
+            "vlm_vpr_ros.map")
+    if kind == "bag":  # bags made before the marker existed: metadata.yaml + our frames.csv
+        return ((path / "metadata.yaml").is_file()
+                and _csv_header(path / "frames.csv")[:3] == ["index", "stamp_ns", "file"])
+    if kind == "evaluation":
+        return ((path / "summary.json").is_file()
+                and _csv_header(path / "frames.csv")[:3] == ["index", "stamp", "key"])
+    return False
+
+
+def write_marker(folder: Path, kind: str) -> None:
+    from vlm_vpr_ros import __version__
+
+    (folder / MARKER).write_text(json.dumps({"kind": kind, "tool": "vlm_vpr_ros",
+                                             "version": __version__}) + "\n", encoding="utf-8")
+
+
+_WHAT = {"map": "a map (no vlm_vpr_ros manifest.json)",
+         "bag": "a bag written by 'vlm-vpr bag make'",
+         "evaluation": "an evaluation folder written by 'vlm-vpr evaluate-bag'"}
+
+
+def check_target(target: Path, kind: str, overwrite: bool) -> bool:
+    """Raise OutputError unless ``target`` may be written; True when it holds an old output."""
+    if kind not in KINDS:
+        raise ValueError(f"unknown output kind {kind!r}")
+    if not target.exists() and not target.is_symlink():
+        return False
+    if not target.is_dir():
+        raise OutputError(f"{target} exists and is not a folder; choose another --out")
+    if not any(target.iterdir()):
+        return False
+    if not written_by_us(target, kind):
+        raise OutputError(f"{target} exists and is not {_WHAT[kind]}; it is left untouched: "
+                          "choose another --out")
+    if not overwrite:
+        raise OutputError(f"{target} already holds a {kind}; pass --overwrite to replace it "
+                          "(the old one stays until the new one is complete)")
+    return True
+
+
+def _resolved(p: str | os.PathLike[str]) -> Path:
+    return Path(os.path.abspath(os.path.realpath(p)))
+
+
+def check_not_inside(out: str | os.PathLike[str],
+                     inputs: Iterable[str | os.PathLike[str] | None], what: str = "--out",
+                     allow_out_inside: bool = False) -> None:
+    """Raise OutputError when ``out`` is or contains one of ``inputs`` (or lies inside one,
+    unless ``allow_out_inside``)."""
+    o = _resolved(out)
+    for inp in inputs:
+        if inp is None:
+            continue
+        i = _resolved(inp)
+        if o == i or o in i.parents or (i in o.parents and not allow_out_inside):
+            rel = "is" if o == i else ("is inside" if i in o.parents else "contains")
+            raise OutputError(f"{what} {out} {rel} the input {inp}; outputs are never written "
+                              "into inputs: choose another folder")
+
+
+class StagedOutput:
+    """Build an output folder next to its target, then swap it in atomically."""
+
+    def __init__(self, target: str | os.PathLike[str], kind: str, overwrite: bool = False,
+                 resumable: bool = False, marker: bool = False) -> None:
+        self.target = Path(target)
+        self.kind, self.overwrite, self.resumable, self.marker = kind, overwrite, resumable, marker
+        name = self.target.name
+        if not name or name in (".", ".."):
+            raise OutputError(f"{target}: not a usable output folder name")
+        self.root = self.target.parent / f".{name}.partial"
+        self.path = self.root / name  # the new output is built here
+        self.work = self.root / "work"  # resumable scratch (kept after failures)
+        self._lock_fh = None
+        self.committed = False
+
+    # -- context manager -----
+    def __enter__(self) -> "StagedOutput":
+        try:
+            self.root.mkdir(parents=True, exist_ok=True)
+            self._lock()
+            old = self.root / ".old"
+            if old.is_dir() and not self.target.exists():  # a swap cut short by a crash
+                os.replace(old, self.target)
+                log.warning("restored %s from an interrupted swap", self.target)
+        except OSError as exc:
+            self._unlock()
+            raise OutputError(describe_os_error(exc)) from None
+        try:
+            self.had_old = check_target(self.target, self.kind, self.overwrite)
+        except OutputError:
+            self._unlock()
+            if not any(p.name != ".lock" for p in self.root.iterdir()):
+                shutil.rmtree(self.root, ignore_errors=True)
+            raise
+        try:
+            if self.path.exists() and not self.resumable:
+                shutil.rmtree(self.path)
+            self.path.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            self._unlock()
+            raise OutputError(describe_os_error(exc)) from None
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        try:
+            if not self.committed:
+                self._clean_after_failure(exc_type)
+        finally:
+            self._unlock()
+
+    def _clean_after_failure(self, exc_type) -> None:
+        """Keep resumable work (the next run continues it); drop everything else."""
+        if self.resumable and exc_type is not None:
+            remove_temp_files(self.root)
+            log.info("partial output kept in %s; run the same command again to resume",
+                     self.root)
+            return
+        shutil.rmtree(self.root, ignore_errors=True)
+
+    def _lock(self) -> None:
+        import fcntl
+
+        self._lock_fh = open(self.root / ".lock", "w")
+        try:
+            fcntl.flock(self._lock_fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            self._lock_fh.close()
+            self._lock_fh = None
+            raise OutputError(f"another process is writing {self.target} (lock "
+                              f"{self.root / '.lock'}); wait for it to finish") from None
+
+    def _unlock(self) -> None:
+        if self._lock_fh is not None:
+            self._lock_fh.close()
+            self._lock_fh = None
+
+    # -- the swap -----
+    def commit(self, validate: Callable[[Path], object] | None = None) -> Path:
+        """Validate the staged output, then move it into place (old output removed last)."""
+        if validate is not None:
+            validate(self.path)
+        try:
+            if self.marker:
+                write_marker(self.path, self.kind)
+            old = None
+            if self.target.is_dir() and any(self.target.iterdir()):
+                # re-check: something may have appeared at the target while we were building
+                check_target(self.target, self.kind, self.overwrite)
+                old = self.root / ".old"
+                os.replace(self.target, old)
+            elif self.target.is_dir():
+                self.target.rmdir()
+            try:
+                os.replace(self.path, self.target)
+            except OSError:
+                if old is not None:
+                    os.replace(old, self.target)  # put the old output back
+                raise
+        except OSError as exc:
+            raise OutputError(describe_os_error(exc, self.target)) from None
+        self.committed = True
+        self._unlock()
+        shutil.rmtree(self.root, ignore_errors=True)
+        return self.target
+
+
+def remove_temp_files(folder: Path) -> int:
+    """Delete leftover ``.NAME.tmpPID`` files of interrupted atomic writes under ``folder``."""
+    n = 0
+    for p in folder.rglob(".*.tmp*"):
+        try:
+            if p.is_file():
+                p.unlink()
+                n += 1
+        except OSError:
+            pass
+    return n
