@@ -12,7 +12,7 @@ from vlm_vpr_ros.cli.common import (add_descriptor_option_args, add_localizer_ar
                                     add_prior_args, descriptor_options, localizer_config,
                                     make_prior_provider)
 from vlm_vpr_ros.cli.distributed import add_engine_args, cmd_build_map_ray, engine_options
-from vlm_vpr_ros.errors import ConfigError, DataError, MapError
+from vlm_vpr_ros.errors import DataError, MapError
 
 log = logging.getLogger(__name__)
 

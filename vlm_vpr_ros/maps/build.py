@@ -26,6 +26,7 @@ from vlm_vpr_ros.maps import indexes
 from vlm_vpr_ros.maps.balance import split_large
 from vlm_vpr_ros.maps.sources import CHUNK, DescriptorSource, descriptor_identity, open_source
 from vlm_vpr_ros.maps.store import VERSION, encode_ids, file_table, pq_name, write_submap
+from vlm_vpr_ros.outputs import StagedOutput
 
 log = logging.getLogger(__name__)
 
@@ -45,27 +46,27 @@ def _fingerprint(rows, source: DescriptorSource, settings: dict) -> str:
     return h.hexdigest()
 
 
-def _prepare_out(out_dir: Path, fp: str, overwrite: bool) -> bool:
-    """True when the map is already up to date; otherwise leaves ``out/.build`` ready."""
+def _up_to_date(out_dir: Path, fp: str, overwrite: bool) -> bool:
+    """True when ``out_dir`` already holds this map; a different map (or a folder this tool did
+    not write) is refused unless ``overwrite`` (then replaced only when the new one is complete,
+    see :mod:`vlm_vpr_ros.outputs`)."""
     from vlm_vpr_ros.map_io import MANIFEST
+    from vlm_vpr_ros.outputs import written_by_us
 
-    if (out_dir / MANIFEST).exists():
-        try:
-            old = json.loads((out_dir / MANIFEST).read_text()).get("source", {})
-        except (OSError, ValueError):
-            old = {}
-        if old.get("fingerprint") == fp and not overwrite:
-            return True
-        if not overwrite:
-            raise MapError(f"{out_dir} already holds a different map; pass --overwrite to "
-                           "replace it")
-        shutil.rmtree(out_dir)
-    elif out_dir.exists() and any(p.name != ".build" for p in out_dir.iterdir()):
-        if not overwrite:
-            raise MapError(f"{out_dir} exists and is not a map; pass --overwrite or choose "
-                           "another --out")
-        shutil.rmtree(out_dir)
-    work = out_dir / ".build"
+    if not ((out_dir / MANIFEST).is_file() and written_by_us(out_dir, "map")) or overwrite:
+        return False
+    try:
+        old = json.loads((out_dir / MANIFEST).read_text(encoding="utf-8")).get("source", {})
+    except (OSError, ValueError, AttributeError):
+        old = {}
+    if isinstance(old, dict) and old.get("fingerprint") == fp:
+        return True
+    raise MapError(f"{out_dir} already holds a different map; pass --overwrite to replace it "
+                   "(the old map stays until the new one is complete)")
+
+
+def _prepare_work(work: Path, fp: str) -> None:
+    """Leave the resumable scratch folder ``work`` ready for the build ``fp``."""
     job = work / "job.json"
     if job.exists():
         try:
@@ -79,7 +80,6 @@ def _prepare_out(out_dir: Path, fp: str, overwrite: bool) -> bool:
     from vlm_vpr_ros.map_io import atomic_write_json
 
     atomic_write_json(job, {"fingerprint": fp})
-    return False
 
 
 class _Rows:
@@ -190,12 +190,11 @@ def build_from_descriptors(source_path: str | Path, coords_csv: str | Path,
                            max_submap_size: int | None = None,
                            rerank_factor: int = indexes.DEFAULT_RERANK_FACTOR,
                            overwrite: bool = False, progress: bool = True) -> Any:
-    """Build (or resume) a v2 map from precomputed descriptors; returns the opened map."""
-    from vlm_vpr_ros.map_build import plan_kinds, read_coords_csv
-    from vlm_vpr_ros.map_io import MANIFEST, MAP_FORMAT, METRIC, ReferenceMap, \
-        atomic_save_npz, atomic_write_json
-    from vlm_vpr_ros.partition import make_partition
-    from vlm_vpr_ros import __version__
+    """Build (or resume) a v2 map from precomputed descriptors; returns the opened map.
+    Built in ``.OUT.partial/`` beside ``out_dir`` and swapped in when complete
+    (:mod:`vlm_vpr_ros.outputs`): an old map stays until then."""
+    from vlm_vpr_ros.map_build import read_coords_csv
+    from vlm_vpr_ros.map_io import ReferenceMap
 
     t0 = time.monotonic()
     out_dir = Path(out_dir)
@@ -209,10 +208,29 @@ def build_from_descriptors(source_path: str | Path, coords_csv: str | Path,
                 "seed": seed, "index": index, "ram_budget_mb": ram_budget_mb,
                 "max_submap_size": max_submap_size, "rerank_factor": rerank_factor}
     fp = _fingerprint(rows, source, settings)
-    if _prepare_out(out_dir, fp, overwrite):
+    if _up_to_date(out_dir, fp, overwrite):
         log.info("map %s is up to date", out_dir)
         return ReferenceMap.load(out_dir)
-    work = out_dir / ".build"
+    with StagedOutput(out_dir, "map", overwrite, resumable=True) as staged:
+        _prepare_work(staged.work, fp)
+        _build_into(staged, source, identity, state, rows, fp, partition, clusters, seed,
+                    index, ram_budget_mb, max_submap_size, rerank_factor, progress, t0)
+    return ReferenceMap.load(out_dir)
+
+
+def _build_into(staged: Any, source: DescriptorSource, identity: dict, state: dict, rows,
+                fp: str, partition: str, clusters: int, seed: int, index: str,
+                ram_budget_mb: float | None, max_submap_size: int | None, rerank_factor: int,
+                progress: bool, t0: float) -> None:
+    """The build proper: scratch in ``staged.work``, the finished map in ``staged.path``."""
+    from vlm_vpr_ros.map_build import plan_kinds
+    from vlm_vpr_ros.map_io import MANIFEST, MAP_FORMAT, METRIC, ReferenceMap, \
+        atomic_save_npz, atomic_write_json
+    from vlm_vpr_ros.partition import make_partition
+    from vlm_vpr_ros import __version__
+
+    out_dir = staged.path
+    work = staged.work
     file_rows = [r[0] for r in rows]
     coords = np.array([(r[1], r[2]) for r in rows], dtype=np.float64)
     del rows
@@ -289,10 +307,9 @@ def build_from_descriptors(source_path: str | Path, coords_csv: str | Path,
     }
     atomic_write_json(out_dir / MANIFEST, manifest)
     del desc
-    shutil.rmtree(work, ignore_errors=True)
+    staged.commit(validate=lambda p: ReferenceMap.load(p, verify=False))
     log.info("built map %s from descriptors: %d references (%d skipped), %d submaps, %.1f s",
-             out_dir, len(keep), len(skipped), len(entries), time.monotonic() - t0)
-    return ReferenceMap.load(out_dir)
+             staged.target, len(keep), len(skipped), len(entries), time.monotonic() - t0)
 
 
 def _pq_codebook(desc: _Rows, keep: np.ndarray, kinds: list[str], work: Path,
