@@ -39,7 +39,7 @@ def test_sf_night_prior_restricts_to_submap(sf):
     root, map_dir = sf
     from vlm_vpr_ros.priors.base import Prior, PriorResult
 
-    pipe = LocalizationPipeline.open(map_dir)
+    pipe = LocalizationPipeline.open(map_dir, localizer={"fusion": "paper"})
     f, lat, lon = read_coords_csv(root / "queries.csv")[0]
     hyp = pipe.localize_image(load_image(root / f), PriorResult(Prior(lat, lon, "gt"), "gt"))
     sub = pipe.map.submaps[pipe.map.submap_index(hyp.submap)]
