@@ -38,7 +38,7 @@ from vlm_vpr_ros.types import Candidate, Hypothesis
 log = logging.getLogger(__name__)
 
 FUSION_MODES = ("posterior", "paper")
-BACKGROUND_SAMPLE = 1000
+BACKGROUND_SAMPLE = 256
 
 
 @dataclass(frozen=True)

@@ -4,7 +4,8 @@ At build time (:func:`calibrate_references`, called once at the end of ``build_m
 own references are used as leave-one-out (LOO) queries, so no extra data is needed:
 
 * ``visual_scale``: median over (up to 2,000) references of the standard deviation of the squared
-  descriptor distances to their 10 nearest other references — the spread of look-alike scores.
+  descriptor distances to their 10 nearest other references — the spread of look-alike scores
+  (exact copies of an image, squared distance <= 1e-4, are not neighbours).
 * LOO queries are the references that have another reference within ``place_radius_m`` (the
   place *is* in the map, as for a robot on a mapped route). Each is searched against all other
   references (top-p).
@@ -42,6 +43,9 @@ CALIBRATION_FORMAT = "vlm_vpr_ros.fusion_calibration"
 CALIBRATION_VERSION = 1
 REGIMES = ("no_prior", "prior")
 MAX_LOO_REFERENCES = 200_000  # above this, only the visual scale is computed (from a sample)
+#: squared descriptor distances at most this are copies of the same image (re-uploads,
+#: duplicated look-alikes): not neighbours in the statistics, not matches of a LOO query
+DUPLICATE_SQ = 1e-4
 
 
 def conformal_factor(ratios: np.ndarray, q: float) -> float:
@@ -57,8 +61,7 @@ def conformal_factor(ratios: np.ndarray, q: float) -> float:
 def _sample_prior(lat: float, lon: float, model: ErrorModel,
                   rng: np.random.Generator) -> tuple[float, float]:
     """A prior drawn from ``model`` around (lat, lon): distance by inverse CDF, random bearing."""
-    u = rng.uniform(0.001, 0.999)
-    d = model.quantile(u) / EARTH_RADIUS_KM
+    d = float(model.sample_km(rng, 1)[0]) / EARTH_RADIUS_KM
     b = rng.uniform(0, 2 * math.pi)
     la, lo = math.radians(lat), math.radians(lon)
     la2 = math.asin(math.sin(la) * math.cos(d) + math.cos(la) * math.sin(d) * math.cos(b))
@@ -90,9 +93,11 @@ def calibrate_references(desc: np.ndarray, coords: np.ndarray, model: ErrorModel
     for chunk in np.array_split(sample, max(1, len(sample) // 256)):
         d = _sq_dists(desc, chunk)
         d[np.arange(len(chunk)), chunk] = np.inf
+        d[d <= DUPLICATE_SQ] = np.inf  # copies of the same image are not neighbours
         k = min(10, n - 1)
         if k >= 2:
             part = np.sort(np.partition(d, k - 1, axis=1)[:, :k], axis=1)
+            part = part[np.all(np.isfinite(part), axis=1)]
             spreads += list(part.std(axis=1))
     scale = float(np.median(spreads)) if spreads else 0.0
     out["visual_scale"] = scale if scale > 0 and math.isfinite(scale) else None
@@ -119,9 +124,13 @@ def calibrate_references(desc: np.ndarray, coords: np.ndarray, model: ErrorModel
     for chunk in np.array_split(rows, max(1, len(rows) // 128)):
         d = _sq_dists(desc, chunk)
         d[np.arange(len(chunk)), chunk] = np.inf
+        d[d <= DUPLICATE_SQ] = np.inf  # a copy of the query image is not a LOO match
         idx = np.argpartition(d, p - 1, axis=1)[:, :p]
         for r, (qi, ii) in enumerate(zip(chunk, idx)):
             ii = ii[np.argsort(d[r, ii], kind="stable")]
+            ii = ii[np.isfinite(d[r, ii])]
+            if len(ii) == 0:
+                continue
             pos = (xyz[ii] @ xyz[qi]) >= cos_r
             cands.append((qi, ii, d[r, ii].astype(np.float64), pos))
     hit = [c for c in cands if c[3].any()]

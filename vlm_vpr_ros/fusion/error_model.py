@@ -98,6 +98,13 @@ class ErrorModel:
         """log areal density (per km²) of the true position at great-circle distance(s) d."""
         t = np.asarray(d_km, dtype=np.float64) / EARTH_RADIUS_KM
         one_minus_cos = 2.0 * np.sin(t / 2.0) ** 2
+        if self.uniform_weight > 1e-12:  # the uniform floor keeps a linear sum from underflow
+            dens = np.full(t.shape, self.uniform_weight * math.exp(_LOG_UNIFORM))
+            for s, w in zip(self.sigmas_km, self.weights):
+                if w > 0:
+                    k = _kappa(s)
+                    dens += math.exp(math.log(w) + _log_norm(k)) * np.exp(-k * one_minus_cos)
+            return np.log(dens)
         terms = [np.full(t.shape, math.log(self.uniform_weight) + _LOG_UNIFORM)
                  if self.uniform_weight > 0 else np.full(t.shape, -np.inf)]
         for s, w in zip(self.sigmas_km, self.weights):
@@ -115,6 +122,12 @@ class ErrorModel:
             k = _kappa(s)
             out = out + w * (-np.expm1(-k * one_minus_cos)) / (-math.expm1(-2.0 * k))
         return np.clip(out, 0.0, 1.0)
+
+    def sample_km(self, rng: np.random.Generator, n: int) -> np.ndarray:
+        """``n`` error distances drawn from the model (inverse CDF on a fine log grid)."""
+        grid = np.concatenate([[0.0], np.logspace(-4, math.log10(MAX_DISTANCE_KM), 4000)])
+        cdf = self.cdf(grid)
+        return np.interp(rng.uniform(0.0, float(cdf[-1]), n), cdf, grid)
 
     def quantile(self, p: float) -> float:
         """Distance (km) within which the truth lies with probability ``p`` (bisection)."""

@@ -11,7 +11,8 @@ query's own candidate spread for maps without them), ``beta`` its calibrated sha
 the second term is absent.
 
 Geographic voting: the estimate is the candidate with the largest posterior mass within
-``vote_radius_m`` of it (places that agree add up), ties broken by the candidate's own weight.
+``vote_radius_m`` of it (places that agree add up), ties broken by the candidate's own weight;
+only the 64 most probable candidates vote and can win (the others' mass is negligible).
 
 Radii: the smallest radius around the estimate that holds 68 % (95 %) of a mixture of the
 candidates' posterior masses (each a point) and a *miss* component of mass ``m0`` — the chance
@@ -29,6 +30,10 @@ import numpy as np
 
 from vlm_vpr_ros.fusion.error_model import ErrorModel
 from vlm_vpr_ros.geodesy import EARTH_RADIUS_KM, MAX_DISTANCE_KM, haversine_km, latlon_to_unit
+
+
+#: geographic voting considers this many most probable candidates
+VOTERS = 64
 
 
 @dataclass
@@ -93,13 +98,18 @@ def fuse(l2_sq: np.ndarray, lat: np.ndarray, lon: np.ndarray, visual_scale: floa
     w = np.exp(logw)
     w /= w.sum()
     # votes: posterior mass within the vote radius of each candidate (unit-vector dot products)
-    xyz = latlon_to_unit(lat, lon)
-    near = (xyz @ xyz.T) >= math.cos(vote_radius_m / 1000.0 / EARTH_RADIUS_KM)
-    votes = near.astype(np.float64) @ w
+    # votes among the VOTERS most probable candidates (the rest carry negligible mass)
+    top = np.argsort(-w, kind="stable")[:VOTERS]
+    xyz = latlon_to_unit(lat[top], lon[top])
+    dots = (xyz[:, 0, None] * xyz[None, :, 0] + xyz[:, 1, None] * xyz[None, :, 1]
+            + xyz[:, 2, None] * xyz[None, :, 2])
+    near = dots >= math.cos(vote_radius_m / 1000.0 / EARTH_RADIUS_KM)
+    votes = np.zeros_like(w)
+    votes[top] = np.where(near, w[top][None, :], 0.0).sum(axis=1)
     if fixed_best is not None:
         best = int(fixed_best)
-    else:
-        best = int(np.lexsort((-w, -np.round(votes, 12)))[0])
+    else:  # most votes, then own weight (top is sorted by weight: first maximum wins)
+        best = int(top[int(np.argmax(np.round(votes[top], 12)))])
     dist_best = np.atleast_1d(haversine_km(lat[best], lon[best], lat, lon))
     miss = float(min(max(miss_prob, 0.0), 1.0))
     if background is not None and len(background[0]):
