@@ -17,7 +17,7 @@ from vlm_vpr_ros.bags.reader import deserialize, open_bag
 from vlm_vpr_ros.bags.writer import Rosbag2McapWriter
 from vlm_vpr_ros.errors import BagError
 from vlm_vpr_ros.priors import create_prior_provider
-from vlm_vpr_ros.types import FALLBACK_FLAGS
+from msg_adapters.navsat import K68, K95
 
 N = 12
 T0 = 1_700_000_000_000_000_000
@@ -87,9 +87,8 @@ def test_bag_equals_localize_on_files(cbag, pipe, demo_data, queries, tmp_path):
     assert [(f"{m.latitude:.7f}", f"{m.longitude:.7f}") for _, m in fixes] == \
         [(r["lat"], r["lon"]) for r in rows]
     for (_, m), r in zip(fixes, rows):  # the node's NavSatFix policy (msg_adapters.navsat)
-        fallback = bool(set(r["flags"].split("|")) & FALLBACK_FLAGS)
-        assert m.status.status == (-1 if fallback else 0)
-        sigma = max(float(r["uncertainty_m"]), 25_000.0 if fallback else 0.0)
+        sigma = max(float(r["uncertainty_m"]) / K68, float(r["radius95_m"]) / K95)
+        assert m.status.status == (0 if sigma <= 50.0 else -1)  # status follows sigma only
         assert m.position_covariance[0] == pytest.approx(sigma ** 2, rel=1e-3)
     assert est.topics["/vlm_vpr/ground_truth"].count == len(files)
 

@@ -59,7 +59,7 @@ def test_search_equals_numpy_brute_force_global_and_submap():
 
 def test_rerank_chooses_nearest_candidate_to_prior():
     m, desc, ids = synthetic_map()
-    loc = Localizer(m, LocalizerConfig(top_p=50, use_submaps=False))
+    loc = Localizer(m, LocalizerConfig(top_p=50, use_submaps=False, fusion="paper"))
     q = desc[ids.index("tokyo_003.jpg")] + 0.01
     prior = prior_at(*CITIES["lima"])
     hyp = loc.localize(q, prior)
@@ -86,7 +86,7 @@ def test_no_rerank_keeps_best_descriptor_match():
 def test_prior_selects_submap_kmeans():
     m, desc, ids = synthetic_map()
     q = desc[ids.index("tokyo_003.jpg")]
-    hyp = Localizer(m).localize(q, prior_at(48.0, 3.0))  # near Paris
+    hyp = Localizer(m, LocalizerConfig(fusion="paper")).localize(q, prior_at(48.0, 3.0))
     assert hyp.ref_id.startswith("paris")
     assert all(c.ref_id.startswith("paris") for c in hyp.candidates)
     assert hyp.submap in {s.id for s in m.submaps} and not hyp.flagged
@@ -95,7 +95,7 @@ def test_prior_selects_submap_kmeans():
 def test_n_submaps_widens_search():
     m, desc, ids = synthetic_map()
     q = desc[ids.index("tokyo_003.jpg")]
-    hyp = Localizer(m, LocalizerConfig(n_submaps=2, rerank=False)).localize(
+    hyp = Localizer(m, LocalizerConfig(n_submaps=2, rerank=False, fusion="paper")).localize(
         q, prior_at(20.0, 90.0))  # between Tokyo and Nairobi, nearer Tokyo
     assert "+" in hyp.submap and len(hyp.submap.split("+")) == 2
     assert hyp.ref_id == "tokyo_003.jpg"
@@ -105,9 +105,10 @@ def test_country_submap_and_prior_outside_map():
     m, desc, ids = synthetic_map(method="country")
     assert {s.id for s in m.submaps} == {"FR", "JP", "KE", "PE"}
     q = desc[ids.index("paris_001.jpg")]
-    hyp = Localizer(m).localize(q, prior_at(43.6, 1.44))  # Toulouse, France
+    paper = Localizer(m, LocalizerConfig(fusion="paper"))
+    hyp = paper.localize(q, prior_at(43.6, 1.44))  # Toulouse, France
     assert hyp.submap == "FR" and hyp.ref_id.startswith("paris")
-    hyp = Localizer(m).localize(q, prior_at(52.52, 13.405))  # Berlin: no German submap
+    hyp = paper.localize(q, prior_at(52.52, 13.405))  # Berlin: no German submap
     assert "prior_not_in_map" in hyp.flags and hyp.submap == "FR"  # nearest centroid
 
 
@@ -121,26 +122,28 @@ def test_no_prior_is_flagged_global_and_failed_prior_flagged():
     assert "prior_failed" in hyp.flags and hyp.ref_id == "nairobi_010.jpg"
 
 
-def test_uncertainty_is_finite_and_follows_formula():
+def test_radii_are_finite_ordered_and_honest():
     m, desc, ids = synthetic_map()
-    loc = Localizer(m, LocalizerConfig(use_submaps=False))
-    rng = np.random.default_rng(3)
-    for _ in range(20):
-        q = rng.normal(size=desc.shape[1]).astype(np.float32)
-        la, lo = rng.uniform(-60, 60), rng.uniform(-180, 180)
-        hyp = loc.localize(q, prior_at(la, lo))
-        assert math.isfinite(hyp.uncertainty_m) and hyp.uncertainty_m >= 25.0
-        best = hyp.candidates[0]
-        by_l2 = sorted(hyp.candidates, key=lambda c: c.l2_sq)  # rivals: most similar first
-        rivals = [c for c in by_l2 if c is not best and c.l2_sq <= best.l2_sq / 0.81][:5]
-        spread = (np.median([haversine_km(best.lat, best.lon, c.lat, c.lon) for c in rivals])
-                  if rivals else 0.0)
-        expect = max(25.0, 1000 * math.hypot(spread, 0.5 * best.prior_km))
-        assert hyp.uncertainty_m == pytest.approx(expect, rel=1e-9)
+    for fusion in ("posterior", "paper"):
+        loc = Localizer(m, LocalizerConfig(use_submaps=False, fusion=fusion))
+        rng = np.random.default_rng(3)
+        for _ in range(20):
+            q = rng.normal(size=desc.shape[1]).astype(np.float32)
+            la, lo = rng.uniform(-60, 60), rng.uniform(-180, 180)
+            hyp = loc.localize(q, prior_at(la, lo))
+            assert math.isfinite(hyp.uncertainty_m) and hyp.uncertainty_m >= 25.0
+            assert hyp.uncertainty_m <= hyp.radius95_m <= math.pi * 6371.0088e3
+            assert hyp.fusion == fusion
+            assert sum(c.posterior for c in hyp.candidates) == pytest.approx(1.0)
     # an exact, distinctive match with an agreeing prior is confident
+    loc = Localizer(m, LocalizerConfig(use_submaps=False))
     q = desc[ids.index("lima_005.jpg")]
     hyp = loc.localize(q, prior_at(*CITIES["lima"]))
-    assert hyp.uncertainty_m < 20_000
+    assert hyp.ref_id == "lima_005.jpg" and hyp.uncertainty_m < 20_000
+    assert hyp.confidence > 0.5
+    # a random descriptor (no real match) with no prior is spread over the map: huge radius
+    q = np.random.default_rng(9).normal(size=desc.shape[1]).astype(np.float32)
+    assert loc.localize(q, None).radius95_m > 1_000_000
 
 
 def test_dimension_mismatch_and_bad_config():

@@ -8,42 +8,57 @@ import numpy as np
 import pytest
 
 from msg_adapters.diagnostics import diagnostic_array, format_value, level_name, status_values
-from msg_adapters.navsat import (MAX_SIGMA_M, STATUS_FIX, STATUS_NO_FIX, FixPolicy, fix_fields,
-                                 navsat_fix)
+from msg_adapters.navsat import (K68, K95, MAX_SIGMA_M, STATUS_FIX, STATUS_NO_FIX, FixPolicy,
+                                 fix_fields, navsat_fix)
 from vlm_vpr_ros.errors import ConfigError
 from vlm_vpr_ros.priors.base import Prior, PriorResult
 from vlm_vpr_ros.types import Hypothesis
 
 
-def hyp(sigma=120.0, flags=(), prior=True) -> Hypothesis:
+def hyp(sigma=120.0, flags=(), prior=True, r95=float("nan")) -> Hypothesis:
     p = Prior(48.85, 2.35, "fixed") if prior else None
     pr = PriorResult(p, "fixed") if prior else PriorResult.failure("openai:x", "timeout")
     return Hypothesis(lat=48.8584, lon=2.2945, ref_id="a.jpg", submap="k003",
-                      uncertainty_m=sigma, prior=p, prior_result=pr, flags=tuple(flags))
+                      uncertainty_m=sigma, prior=p, prior_result=pr, flags=tuple(flags),
+                      radius95_m=r95)
 
 
 def test_good_fix_is_status_fix_with_enu_covariance():
-    f = fix_fields(hyp(sigma=120.0))
-    assert f.status == STATUS_FIX and not f.flagged
+    f = fix_fields(hyp(sigma=60.0, r95=90.0))
+    sigma = max(60.0 / K68, 90.0 / K95)  # Rayleigh: 68 % and 95 % radii of a 2-D Gaussian
+    assert K68 == pytest.approx(1.5096, abs=1e-4) and K95 == pytest.approx(2.4477, abs=1e-4)
+    assert f.status == STATUS_FIX and not f.flagged and f.sigma_m == pytest.approx(sigma)
     assert (f.latitude, f.longitude) == (48.8584, 2.2945)
     cov = np.array(f.covariance).reshape(3, 3)
-    assert cov[0, 0] == cov[1, 1] == pytest.approx(120.0 ** 2)
+    assert cov[0, 0] == cov[1, 1] == pytest.approx(sigma ** 2)
     assert cov[2, 2] == pytest.approx(1000.0 ** 2)  # default altitude sigma
     assert np.count_nonzero(cov - np.diag(np.diag(cov))) == 0
     assert f.altitude == 0.0 and math.isfinite(f.altitude)  # NaN would be dropped downstream
+    # a heavy 95 % tail widens sigma beyond the 68 % radius alone
+    assert fix_fields(hyp(sigma=60.0, r95=5000.0)).sigma_m == pytest.approx(5000.0 / K95)
 
 
-def test_flagged_fix_policy():
-    h = hyp(sigma=300.0, flags=("no_prior", "prior_failed", "global"), prior=False)
-    f = fix_fields(h)
-    assert f.flagged and f.status == STATUS_NO_FIX
-    assert f.sigma_m == 25_000.0 and f.covariance[0] == 25_000.0 ** 2
-    g = fix_fields(h, FixPolicy(fallback_status="fix", fallback_min_sigma_m=1e5,
-                                altitude_m=35.0, altitude_sigma_m=10.0))
-    assert g.status == STATUS_FIX and g.sigma_m == 1e5
-    assert g.altitude == 35.0 and g.covariance[8] == 100.0
-    big = fix_fields(hyp(sigma=3e6, flags=("prior_far_from_match",)))
-    assert big.sigma_m == 3e6  # the floor never shrinks a larger radius
+def test_status_follows_calibrated_quality_not_the_prior():
+    # a confident no-prior match is a fix with its real sigma
+    f = fix_fields(hyp(sigma=30.0, r95=60.0, flags=("no_prior", "global"), prior=False))
+    assert f.flagged and f.status == STATUS_FIX and f.sigma_m < 50.0
+    # a prior-guided guess with a wide posterior is not a fix
+    g = fix_fields(hyp(sigma=3000.0, r95=9000.0))
+    assert not g.flagged and g.status == STATUS_NO_FIX and not g.precise
+    assert g.sigma_m == pytest.approx(9000.0 / K95)  # honest covariance, no inflation
+    # the threshold is the policy's; fallback_status="fix" publishes imprecise fixes as FIX
+    h = fix_fields(hyp(sigma=3000.0, r95=9000.0),
+                   FixPolicy(fallback_status="fix", fallback_min_sigma_m=1e5,
+                             altitude_m=35.0, altitude_sigma_m=10.0))
+    assert h.status == STATUS_FIX and h.sigma_m == 1e5
+    assert h.altitude == 35.0 and h.covariance[8] == 100.0
+    assert fix_fields(hyp(sigma=3000.0), FixPolicy(fix_max_sigma_m=5000.0)).status == STATUS_FIX
+    # no match: never a fix, position NaN
+    nm = Hypothesis(lat=math.nan, lon=math.nan, ref_id="", submap="", uncertainty_m=2e7,
+                    flags=("no_prior", "no_match"), radius95_m=2e7)
+    for pol in (FixPolicy(), FixPolicy(fallback_status="fix")):
+        x = fix_fields(nm, pol)
+        assert x.status == STATUS_NO_FIX and all(math.isfinite(v) for v in x.covariance)
 
 
 @pytest.mark.parametrize("bad", [math.inf, math.nan, -5.0, 0.0, 1e12])
@@ -56,14 +71,14 @@ def test_covariance_always_finite(bad):
 def test_navsatfix_message():
     from sensor_msgs.msg import NavSatFix, NavSatStatus
 
-    msg = navsat_fix(hyp(sigma=50.0), 1_700_000_000_123_456_789, "camera_link")
+    msg = navsat_fix(hyp(sigma=50.0 * K68), 1_700_000_000_123_456_789, "camera_link")
     assert isinstance(msg, NavSatFix)
     assert (msg.header.stamp.sec, msg.header.stamp.nanosec) == (1_700_000_000, 123_456_789)
     assert msg.header.frame_id == "camera_link"
     assert msg.status.status == NavSatStatus.STATUS_FIX and msg.status.service == 0
     assert msg.position_covariance_type == NavSatFix.COVARIANCE_TYPE_APPROXIMATED
     assert list(msg.position_covariance)[:5] == [2500.0, 0.0, 0.0, 0.0, 2500.0]
-    flagged = navsat_fix(hyp(flags=("no_prior",), prior=False), 0, "c")
+    flagged = navsat_fix(hyp(sigma=5000.0, flags=("no_prior",), prior=False), 0, "c")
     assert flagged.status.status == NavSatStatus.STATUS_NO_FIX
     assert flagged.latitude == pytest.approx(48.8584)  # the guess is still visible
 

@@ -7,7 +7,11 @@ Rows (each evaluated at every top-p of the sweep):
 * ``prior + re-rank, no submap`` — global top-p, re-ranked by distance to the prior;
 * ``country submap`` / ``cluster submap``, each ``no re-rank`` and ``+ re-rank`` — the prior
   picks the submap (one per country, or K-means on position), then retrieval (and re-ranking)
-  happens in it.
+  happens in it;
+* ``prior region + posterior`` / ``no prior, posterior vote`` — the default fusion
+  (docs/fusion.md) with and without the prior.
+
+The ``fusion`` column says which fusion mode each row runs (the paper's rows: ``paper``).
 
 The country and cluster partitions are made in memory from the same map
 (:meth:`ReferenceMap.with_partition`), so one map and one set of descriptors serve every row.
@@ -42,6 +46,7 @@ class AblationRow:
     use_prior: bool
     use_submaps: bool
     rerank: bool
+    fusion: str = "paper"  # LocalizerConfig.fusion: "paper" or "posterior"
 
 
 ROWS = (
@@ -51,6 +56,8 @@ ROWS = (
     AblationRow("country submap + re-rank", "country", True, True, True),
     AblationRow("cluster submap, no re-rank", "kmeans", True, True, False),
     AblationRow("cluster submap + re-rank", "kmeans", True, True, True),
+    AblationRow("prior region + posterior", None, True, True, True, "posterior"),
+    AblationRow("no prior, posterior vote", None, False, True, True, "posterior"),
 )
 
 
@@ -62,10 +69,13 @@ class AblationResult:
     prior_only: dict | None = None
     clusters: int = 0
     n_submaps: dict[str, int] = field(default_factory=dict)
+    #: row name → fusion mode ("paper" / "posterior")
+    fusion: dict[str, str] = field(default_factory=dict)
 
     def as_dict(self) -> dict:
         return {"top_p": self.top_ps, "rows": self.rows, "prior_only": self.prior_only,
-                "kmeans_clusters": self.clusters, "n_submaps": self.n_submaps}
+                "kmeans_clusters": self.clusters, "n_submaps": self.n_submaps,
+                "fusion": self.fusion}
 
 
 def run_ablation(ref_map: ReferenceMap, descriptors: np.ndarray, truth: np.ndarray,
@@ -99,11 +109,12 @@ def run_ablation(ref_map: ReferenceMap, descriptors: np.ndarray, truth: np.ndarr
     gt = [tuple(g) for g in truth]
     for row in rows:
         result.rows[row.name] = []
+        result.fusion[row.name] = row.fusion
         for p in ps:
             if progress:
                 progress(f"{row.name}, top-p {p}")
             loc = Localizer(maps[row.partition], LocalizerConfig(
-                top_p=p, use_submaps=row.use_submaps, rerank=row.rerank))
+                top_p=p, use_submaps=row.use_submaps, rerank=row.rerank, fusion=row.fusion))
             est = []
             for d, pr in zip(desc, priors):
                 hyp = loc.localize(d, pr if row.use_prior else None)
@@ -124,9 +135,12 @@ def format_ablation(result: AblationResult, table_top_p: int | None = None,
     ps = result.top_ps
     p = table_top_p if table_top_p in ps else ps[-1]
     i = ps.index(p)
-    table = {name: sums[i] for name, sums in result.rows.items()}
+    def label(name: str) -> str:  # the fusion mode as the first column
+        return f"{result.fusion.get(name, 'paper'):<10}{name}"
+
+    table = {label(name): sums[i] for name, sums in result.rows.items()}
     if result.prior_only is not None:
-        table = {PRIOR_ONLY: result.prior_only, **table}
+        table = {f"{'-':<10}{PRIOR_ONLY}": result.prior_only, **table}
     n = next(iter(table.values()))["n"]
     out = [format_table(table, title=f"Ablation at top-p = {p} ({n} queries; cluster submaps: "
                                      f"K={result.n_submaps.get('kmeans', result.clusters)}, "
@@ -134,10 +148,10 @@ def format_ablation(result: AblationResult, table_top_p: int | None = None,
     keys = [f"{t:g}km" for t in THRESHOLDS_KM]
     if sweep_metric not in keys:
         raise DataError(f"unknown metric {sweep_metric!r}; choices: {', '.join(keys)}")
-    head = f"{'accuracy @ ' + sweep_metric[:-2] + ' km vs top-p':<36}" + "".join(
+    head = f"{'fusion':<10}{'accuracy @ ' + sweep_metric[:-2] + ' km vs top-p':<36}" + "".join(
         f"{'p=' + str(q):>9}" for q in ps)
     out += ["", head, "-" * len(head)]
     for name, sums in result.rows.items():
-        out.append(f"{name:<36}" + "".join(f"{s['accuracy'][sweep_metric]:>8.2f}%"
+        out.append(f"{label(name):<46}" + "".join(f"{s['accuracy'][sweep_metric]:>8.2f}%"
                                            for s in sums))
     return "\n".join(out)

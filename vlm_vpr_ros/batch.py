@@ -19,7 +19,8 @@ from vlm_vpr_ros.priors.base import PriorProvider, PriorQuery, wait_prior
 log = logging.getLogger(__name__)
 
 RESULT_FIELDS = ["file", "lat", "lon", "prior_lat", "prior_lon", "prior_source", "prior_reason",
-                 "submap", "ref_id", "uncertainty_m", "n_candidates", "flags",
+                 "submap", "ref_id", "uncertainty_m", "radius95_m", "confidence", "fusion",
+                 "n_candidates", "flags",
                  "descriptor_ms", "retrieval_ms", "rerank_ms", "prior_latency_s"]
 
 

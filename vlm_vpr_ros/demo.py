@@ -77,18 +77,19 @@ def run_demo(out: str | Path, with_bag: bool = True) -> int:
     queries = make_queries(out)
     files = read_file_column(queries)
     priors_csv = DEMO_DATA / "priors_osv5m_baseline.csv"
+    recorded = ("recorded", {"path": str(priors_csv)})
     runs = {
-        "VPR only (no prior)": ("none", {}, LocalizerConfig()),
+        "VPR only (no prior)": ("none", {}, LocalizerConfig(fusion="paper")),
         "prior only (OSV-5M model)": None,
-        "prior+country submap, no re-rank": ("recorded", {"path": str(priors_csv)},
-                                             LocalizerConfig(rerank=False)),
-        "prior+country submap+re-rank": ("recorded", {"path": str(priors_csv)},
-                                         LocalizerConfig()),
-        "prior+re-rank, no submap": ("recorded", {"path": str(priors_csv)},
-                                     LocalizerConfig(use_submaps=False)),
+        "paper: country submap, no re-rank": (*recorded, LocalizerConfig(fusion="paper",
+                                                                         rerank=False)),
+        "paper: country submap+re-rank": (*recorded, LocalizerConfig(fusion="paper")),
+        "paper: re-rank, no submap": (*recorded, LocalizerConfig(fusion="paper",
+                                                                 use_submaps=False)),
+        "posterior (default): prior+VPR": (*recorded, LocalizerConfig(fusion="posterior")),
     }
     print("[3/4] localizing the queries ...", flush=True)
-    table = {}
+    table, coverage = {}, {}
     for i, (name, spec) in enumerate(runs.items()):
         res = out / f"results_{i}.csv"
         if spec is None:  # the prior itself as the estimate
@@ -102,11 +103,16 @@ def run_demo(out: str | Path, with_bag: bool = True) -> int:
             pipe = LocalizationPipeline.open(map_dir, localizer=spec[2])
             write_csv_atomic(res, RESULT_FIELDS,
                              localize_files(pipe, provider, out / "queries", files))
-        table[name], _ = evaluate_results_csv(res, queries)
+        table[name], extra = evaluate_results_csv(res, queries)
+        coverage[name] = (extra["coverage_pct"], extra["coverage95_pct"] or 0.0)
         print(f"      {name}: {res}", flush=True)
     print()
     print(format_table(table, title="Demo: 71 OSV-5M street images (48 countries); "
                                     "queries are altered copies of map images"))
+    print(f"      coverage of the posterior's 68 % / 95 % radii: "
+          f"{coverage['posterior (default): prior+VPR'][0]:.1f}% / "
+          f"{coverage['posterior (default): prior+VPR'][1]:.1f}% "
+          "(docs/fusion.md; this map has one image per place, so no leave-one-out calibration)")
     print()
     if with_bag:
         _bag_demo(out, map_dir, queries, priors_csv)
@@ -124,7 +130,7 @@ def _bag_demo(out: Path, map_dir: Path, queries: Path, priors_csv: Path) -> None
     from vlm_vpr_ros.evaluation import format_table
 
     info = run_bag_demo(out / "bag_demo", map_dir, out / "queries", queries, priors_csv)
-    print(format_table({"bag, prior+country submap+re-rank": info["summary"]},
+    print(format_table({"bag, posterior fusion (default)": info["summary"]},
                        title="Demo bag evaluated offline (vlm-vpr evaluate-bag)"))
     for key, value in info.items():
         if key != "summary":

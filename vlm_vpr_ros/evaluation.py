@@ -70,6 +70,15 @@ def _float(v) -> float | None:
     return x if math.isfinite(x) else None
 
 
+def coverage_pct(errs: Sequence[float | None], radii_m: Sequence[float | None]) -> float:
+    """Percent of rows whose error (km) is within their radius (m); a row without an estimate
+    or radius counts as not covered."""
+    errs = list(errs)
+    hits = sum(1 for e, r in zip(errs, radii_m) if e is not None and r is not None
+               and e * 1000.0 <= r)
+    return 100.0 * hits / len(errs) if errs else 0.0
+
+
 def evaluate_results_csv(results_csv, ground_truth_csv) -> tuple[dict, dict]:
     """Summary (JSON shape of ``vlm-vpr evaluate``) of a results CSV, plus extra statistics."""
     import os
@@ -79,7 +88,7 @@ def evaluate_results_csv(results_csv, ground_truth_csv) -> tuple[dict, dict]:
     gt = read_ground_truth(ground_truth_csv)
     gt_base = {os.path.basename(k): v for k, v in gt.items()}
     rows = read_table(results_csv, ("file", "lat", "lon"), "results CSV")
-    est, truth, sigma, flagged, missing = [], [], [], 0, 0
+    est, truth, sigma, sigma95, flagged, missing = [], [], [], [], 0, 0
     for row in rows:
         g = gt.get(row.get("file", "")) or gt_base.get(os.path.basename(row.get("file", "")))
         if g is None:
@@ -89,10 +98,11 @@ def evaluate_results_csv(results_csv, ground_truth_csv) -> tuple[dict, dict]:
         est.append(None if lat is None or lon is None else (lat, lon))
         truth.append(g)
         sigma.append(_float(row.get("uncertainty_m")))
+        sigma95.append(_float(row.get("radius95_m")))
         flagged += bool(row.get("flags"))
     errs = errors_km(est, truth)
-    covered = sum(1 for e, s in zip(errs, sigma) if e is not None and s is not None
-                  and e * 1000.0 <= s)
-    extra = {"coverage_pct": 100.0 * covered / len(errs) if errs else 0.0,
+    extra = {"coverage_pct": coverage_pct(errs, sigma),
+             "coverage95_pct": (coverage_pct(errs, sigma95)
+                                if any(s is not None for s in sigma95) else None),
              "flagged": flagged, "missing_gt": missing}
     return summarize(errs), extra

@@ -1,12 +1,18 @@
-"""The localizer: prior → submap(s) → top-p retrieval by squared L2 → haversine re-rank.
+"""The localizer: prior → submap(s) → top-p retrieval by squared L2 → fusion.
 
-Uncertainty radius (1-sigma-like, metres; see README "Uncertainty"):
-``sigma = max(floor, sqrt(spread² + (0.5·d_prior)²))``. ``spread`` is the median distance from
-the chosen reference to its *visual competitors*: up to ``spread_k`` other candidates whose
-descriptor distance is at most ``d_chosen / ambiguity_ratio`` (as plausible as the chosen one,
-Lowe-ratio style) — do the places that explain the image agree? ``d_prior`` is the distance from
-the chosen reference to the prior — does the visual match agree with the VLM? Always finite:
-capped at half the Earth's circumference.
+Two fusion modes (docs/fusion.md):
+
+* ``posterior`` (default): the prior's confidence region (a quantile of the VLM error model)
+  picks every submap it intersects, within a budget of references; on maps small enough
+  (``global_merge_max_refs``) the global top-p is merged in, so a prior can never hide the best
+  visual match. Candidates are scored by visual likelihood + prior likelihood
+  (:mod:`vlm_vpr_ros.fusion.posterior`) and the estimate is the geographic vote's winner.
+* ``paper``: the method of Waheed et al. — the one submap nearest to the prior, top-p, re-rank by
+  haversine distance to the prior (``use_submaps`` / ``rerank`` / ``n_submaps`` ablations).
+
+In both modes ``uncertainty_m`` is the calibrated radius that holds the true position with 68 %
+probability and ``radius95_m`` the 95 % one, from the posterior over the candidates
+(:mod:`vlm_vpr_ros.fusion.calibration`). Always finite: capped at half the Earth's circumference.
 """
 
 from __future__ import annotations
@@ -19,33 +25,59 @@ from dataclasses import dataclass
 import numpy as np
 
 from vlm_vpr_ros.errors import ConfigError, DescriptorError
+from vlm_vpr_ros.fusion.calibration import load_calibration
+from vlm_vpr_ros.fusion.error_model import ErrorModel, load_error_models
+from vlm_vpr_ros.fusion.posterior import fuse
 from vlm_vpr_ros.geodesy import MAX_DISTANCE_KM, haversine_km
 from vlm_vpr_ros.map_io import ReferenceMap
 from vlm_vpr_ros.partition import country_codes, nearest_centroids
 from vlm_vpr_ros.priors.base import Prior, PriorResult
+from vlm_vpr_ros.priors.simple import valid_latlon
 from vlm_vpr_ros.types import Candidate, Hypothesis
 
 log = logging.getLogger(__name__)
 
+FUSION_MODES = ("posterior", "paper")
+BACKGROUND_SAMPLE = 256
+
 
 @dataclass(frozen=True)
 class LocalizerConfig:
-    top_p: int = 50  # references retrieved before re-ranking
-    use_submaps: bool = True  # False: search the whole map (ablation "no submap")
-    rerank: bool = True  # False: keep the best descriptor match (ablation "no re-rank")
-    n_submaps: int = 1  # search the n submaps nearest to the prior
-    uncertainty_floor_m: float = 25.0
-    spread_k: int = 5
-    ambiguity_ratio: float = 0.9
+    top_p: int = 50  # references retrieved before fusion / re-ranking
+    fusion: str = "posterior"  # "posterior" (default) or "paper"
+    use_submaps: bool = True  # False: search the whole map even with a prior
+    rerank: bool = True  # False: ignore the prior when ordering candidates (ablation)
+    n_submaps: int = 1  # paper mode: search the n submaps nearest to the prior
+    prior_quantile: float = 0.95  # posterior mode: confidence region of the prior
+    max_region_refs: int = 2_000_000  # posterior mode: budget of references searched
+    global_merge_max_refs: int = 250_000  # merge the global top-p on maps up to this size
+    vote_radius_m: float = 25.0  # geographic voting radius
+    uncertainty_floor_m: float = 25.0  # smallest radius ever reported (the place's size)
     far_prior_km: float = 2500.0  # flag a match this far from the prior
+    error_model: str = ""  # error-model JSON ('' = the shipped one)
+    error_model_name: str = ""  # model in that file ('' = per prior source, else default)
 
     def __post_init__(self) -> None:
-        if self.top_p < 1 or self.n_submaps < 1 or self.spread_k < 1:
-            raise ConfigError("top_p, n_submaps and spread_k must be >= 1")
-        if not 0.0 < self.ambiguity_ratio <= 1.0:
-            raise ConfigError("ambiguity_ratio must be in (0, 1]")
-        if not (self.uncertainty_floor_m > 0 and math.isfinite(self.uncertainty_floor_m)):
-            raise ConfigError("uncertainty_floor_m must be a positive finite number")
+        if self.top_p < 1 or self.n_submaps < 1 or self.max_region_refs < 1:
+            raise ConfigError("top_p, n_submaps and max_region_refs must be >= 1")
+        if self.fusion not in FUSION_MODES:
+            raise ConfigError(f"unknown fusion {self.fusion!r}; choices: "
+                              f"{', '.join(FUSION_MODES)}")
+        if not 0.0 < self.prior_quantile < 1.0:
+            raise ConfigError("prior_quantile must be in (0, 1)")
+        for name in ("uncertainty_floor_m", "vote_radius_m"):
+            v = getattr(self, name)
+            if not (v > 0 and math.isfinite(v)):
+                raise ConfigError(f"{name} must be a positive finite number")
+
+
+def robust_scale(l2: np.ndarray) -> float:
+    """Visual scale of one query for maps without calibration: the robust spread (1.4826 MAD)
+    of its candidates' squared distances, so one exact match does not inflate it."""
+    if len(l2) < 3:
+        return 1.0
+    mad = 1.4826 * float(np.median(np.abs(l2 - np.median(l2))))
+    return mad if mad > 0 and math.isfinite(mad) else float(np.std(l2)) or 1.0
 
 
 class Localizer:
@@ -53,10 +85,43 @@ class Localizer:
 
     def __init__(self, ref_map: ReferenceMap, config: LocalizerConfig | None = None) -> None:
         self.map = ref_map
-        self.config = config or LocalizerConfig()
+        self.config = cfg = config or LocalizerConfig()
         self._all = list(range(len(ref_map.submaps)))
         if ref_map.partition_method == "country":
             country_codes([0.0], [0.0])  # load the reverse geocoder now, not on the first query
+        self.error_models = load_error_models(cfg.error_model or None)
+        if cfg.error_model_name:
+            self.error_models.get(cfg.error_model_name)  # unknown name: error at start-up
+        self.calibration = load_calibration(ref_map) or {}
+        self._submap_geometry()
+
+    def _submap_geometry(self) -> None:
+        cents = self.map.centroids
+        self._radius_km = np.zeros(len(self.map.submaps))
+        for i, s in enumerate(self.map.submaps):
+            if s.count:
+                self._radius_km[i] = float(np.max(haversine_km(
+                    cents[i, 0], cents[i, 1], s.coords[:, 0], s.coords[:, 1])))
+        self._counts = np.array([s.count for s in self.map.submaps], dtype=np.float64)
+        # a fixed sample of reference positions: the support of the posterior's miss component
+        rng = np.random.default_rng(0)
+        per = np.ceil(BACKGROUND_SAMPLE * self._counts / max(1.0, self._counts.sum()))
+        pts, wts = [], []
+        for s, k in zip(self.map.submaps, per.astype(int)):
+            if s.count:
+                rows = rng.choice(s.count, size=min(k, s.count), replace=False)
+                pts.append(s.coords[rows])
+                wts.append(np.full(len(rows), s.count / len(rows)))
+        self._background = ((np.concatenate(pts)[:, 0], np.concatenate(pts)[:, 1],
+                             np.concatenate(wts)) if pts else None)
+
+    def error_model_for(self, prior: Prior) -> ErrorModel:
+        """The prior's own scale when it carries one, else the fitted model of its source."""
+        if prior.sigma_km is not None:
+            return ErrorModel.single(prior.sigma_km, name=prior.source)
+        if self.config.error_model_name:
+            return self.error_models.get(self.config.error_model_name)
+        return self.error_models.for_source(prior.source)
 
     # -- submap choice --------------------------------------------------------------------------
     def select_submaps(self, prior: Prior | None) -> tuple[list[int], list[str]]:
@@ -65,6 +130,8 @@ class Localizer:
             return self._all, ["global"]
         if not self.config.use_submaps:
             return self._all, ["no_submap"]
+        if self.config.fusion == "posterior":
+            return self._region_submaps(prior)
         n = self.config.n_submaps
         flags: list[str] = []
         chosen: list[int] = []
@@ -81,6 +148,26 @@ class Localizer:
                 break
             if int(i) not in chosen:
                 chosen.append(int(i))
+        return chosen, flags
+
+    def _region_submaps(self, prior: Prior) -> tuple[list[int], list[str]]:
+        """Submaps intersecting the prior's confidence region, nearest first, within budget."""
+        radius = self.error_model_for(prior).quantile(self.config.prior_quantile)
+        cents = self.map.centroids
+        gap = np.atleast_1d(haversine_km(prior.lat, prior.lon, cents[:, 0], cents[:, 1]))
+        gap = np.maximum(gap - self._radius_km, 0.0)
+        order = [int(i) for i in np.argsort(gap, kind="stable") if self._counts[i] > 0]
+        chosen, total, flags = [], 0.0, []
+        for i in order:
+            if gap[i] > radius and chosen:
+                break
+            if chosen and total + self._counts[i] > self.config.max_region_refs:
+                flags.append("region_budget")
+                break
+            chosen.append(i)
+            total += self._counts[i]
+        if order and gap[order[0]] > radius:
+            flags.append("prior_not_in_map")
         return chosen, flags
 
     # -- retrieval ------------------------------------------------------------------------------
@@ -110,48 +197,129 @@ class Localizer:
         cfg = self.config
         prior = prior_result.prior if prior_result is not None else None
         flags: list[str] = []
+        if prior is not None and not (valid_latlon(prior.lat, prior.lon) and (
+                prior.sigma_km is None or (math.isfinite(prior.sigma_km)
+                                           and prior.sigma_km > 0))):
+            flags += ["prior_failed", "prior_invalid"]
+            log.warning("ignoring an invalid prior (%s, %s, sigma %s km) from %s", prior.lat,
+                        prior.lon, prior.sigma_km, prior.source)
+            prior = None
         if prior is None:
             flags.append("no_prior")
-            if prior_result is not None and prior_result.reason not in ("", "disabled"):
+            if (prior_result is not None and prior_result.reason not in ("", "disabled")
+                    and "prior_failed" not in flags):
                 flags.append("prior_failed")
         t0 = time.perf_counter()
         submaps, sflags = self.select_submaps(prior)
         flags += sflags
+        searched_all = len(submaps) == len(self._all)
         cands = self.search(desc, submaps, cfg.top_p)
+        if (cfg.fusion == "posterior" and prior is not None and not searched_all
+                and self.map.n_references <= cfg.global_merge_max_refs):
+            seen = {(c.submap, c.ref_id) for c in cands}
+            extra = [c for c in self.search(desc, self._all, cfg.top_p)
+                     if (c.submap, c.ref_id) not in seen]
+            cands = sorted(cands + extra, key=lambda c: c.l2_sq)
+            searched_all = True
         t1 = time.perf_counter()
-        if prior is not None:
-            d = haversine_km(prior.lat, prior.lon, [c.lat for c in cands],
-                             [c.lon for c in cands])
-            cands = [Candidate(c.ref_id, c.lat, c.lon, c.l2_sq, c.submap, float(dk))
-                     for c, dk in zip(cands, np.atleast_1d(d))]
-        ranked = cands
-        if prior is not None and cfg.rerank:
-            ranked = sorted(cands, key=lambda c: (c.prior_km, c.l2_sq))
-        elif prior is not None:
-            flags.append("no_rerank")
+        if not cands:
+            return self._no_match(prior, prior_result, flags, (t1 - t0) * 1e3)
+        hyp = self._fuse(cands, prior, prior_result, flags, submaps, searched_all)
         t2 = time.perf_counter()
-        best = ranked[0]
-        if best.prior_km is not None and best.prior_km > cfg.far_prior_km:
-            flags.append("prior_far_from_match")
-        hyp = Hypothesis(
-            lat=best.lat, lon=best.lon, ref_id=best.ref_id,
-            submap="*" if sflags in (["global"], ["no_submap"]) else "+".join(
-                self.map.submaps[i].id for i in submaps),
-            uncertainty_m=self.uncertainty_m(best, cands),
-            candidates=ranked, prior=prior, prior_result=prior_result, flags=tuple(flags),
-            timings_ms={"retrieval_ms": (t1 - t0) * 1e3, "rerank_ms": (t2 - t1) * 1e3},
-        )
+        hyp.timings_ms = {"retrieval_ms": (t1 - t0) * 1e3, "rerank_ms": (t2 - t1) * 1e3}
         return hyp
 
-    def uncertainty_m(self, best: Candidate, cands: list[Candidate]) -> float:
-        """The documented heuristic radius (module docstring) for the chosen candidate."""
-        limit = best.l2_sq / (self.config.ambiguity_ratio ** 2)
-        rivals = [c for c in cands if c is not best and c.l2_sq <= limit][:self.config.spread_k]
-        spread = 0.0
-        if rivals:
-            spread = float(np.median(haversine_km(best.lat, best.lon, [c.lat for c in rivals],
-                                                  [c.lon for c in rivals])))
-        d_prior = best.prior_km or 0.0
-        sigma_km = math.hypot(spread, 0.5 * d_prior)
-        sigma_m = max(self.config.uncertainty_floor_m, sigma_km * 1000.0)
-        return float(min(sigma_m, MAX_DISTANCE_KM * 1000.0))
+    def _fuse(self, cands: list[Candidate], prior: Prior | None,
+              prior_result: PriorResult | None, flags: list[str], submaps: list[int],
+              searched_all: bool) -> Hypothesis:
+        cfg = self.config
+        cal = self.calibration
+        lat = np.array([c.lat for c in cands])
+        lon = np.array([c.lon for c in cands])
+        l2 = np.array([c.l2_sq for c in cands], dtype=np.float64)
+        model = self.error_model_for(prior) if prior is not None else None
+        scale = cal.get("visual_scale") or robust_scale(l2)
+        fixed_best = None
+        if prior is not None and cfg.fusion == "paper":
+            if cfg.rerank:
+                g = np.atleast_1d(haversine_km(prior.lat, prior.lon, lat, lon))
+                fixed_best = int(np.lexsort((l2, g))[0])
+            else:
+                flags.append("no_rerank")
+                fixed_best = 0
+        elif prior is not None and not cfg.rerank:
+            flags.append("no_rerank")
+        post = fuse(l2, lat, lon, scale, float(cal.get("beta", 1.0)),
+                    prior=(prior.lat, prior.lon) if prior is not None else None,
+                    error_model=model, use_prior_term=cfg.rerank,
+                    vote_radius_m=cfg.vote_radius_m, miss_prob=float(cal.get("miss_prob", 0.05)),
+                    background=self._background,
+                    fixed_best=fixed_best if fixed_best is not None else (
+                        0 if prior is None and cfg.fusion == "paper" else None))
+        g_km = post.extra["prior_km"]
+        out = [Candidate(c.ref_id, c.lat, c.lon, c.l2_sq, c.submap,
+                         None if g_km is None else float(g_km[i]), float(post.weights[i]))
+               for i, c in enumerate(cands)]
+        best = post.best
+        if cfg.fusion == "paper" and prior is not None and cfg.rerank:
+            rest = sorted((c for i, c in enumerate(out) if i != best),
+                          key=lambda c: (c.prior_km, c.l2_sq))
+        elif cfg.fusion == "paper":
+            rest = [c for i, c in enumerate(out) if i != best]
+        else:
+            rest = sorted((c for i, c in enumerate(out) if i != best),
+                          key=lambda c: -(c.posterior or 0.0))
+        ranked = [out[best], *rest]
+        chosen = ranked[0]
+        if chosen.prior_km is not None and chosen.prior_km > cfg.far_prior_km:
+            flags.append("prior_far_from_match")
+        r68, r95 = self.calibrated_radii(post.r68_m, post.r95_m, prior is not None)
+        if searched_all:
+            label = "*"
+        else:
+            label = "+".join(self.map.submaps[i].id for i in submaps)
+        return Hypothesis(
+            lat=chosen.lat, lon=chosen.lon, ref_id=chosen.ref_id, submap=label,
+            uncertainty_m=r68, radius95_m=r95, confidence=float(post.votes[best]),
+            fusion=cfg.fusion, candidates=ranked, prior=prior, prior_result=prior_result,
+            flags=tuple(flags))
+
+    @property
+    def calibration_source(self) -> str:
+        """Where the radii's calibration comes from: user / map leave-one-out / none."""
+        if self.calibration.get("user"):
+            return "user (vlm-vpr calibrate)"
+        n = (self.calibration.get("loo") or {}).get("queries", 0)
+        return f"map leave-one-out ({n} queries)" if n else "none (uncalibrated)"
+
+    def calibration_factors(self, with_prior: bool) -> tuple[float, float]:
+        """(k68, k95): a user calibration (``vlm-vpr calibrate``) for the regime when there is
+        one, else the larger of the map's leave-one-out factors over both regimes (a simulated
+        prior is not the user's prior: the conservative choice, docs/fusion.md)."""
+        regime = "prior" if with_prior else "no_prior"
+        user = (self.calibration.get("user") or {}).get(regime)
+        if user:
+            return float(user["k68"]), float(user["k95"])
+        loo = list((self.calibration.get("regimes") or {}).values())
+        if not loo:
+            return 1.0, 1.0
+        return max(float(f["k68"]) for f in loo), max(float(f["k95"]) for f in loo)
+
+    def calibrated_radii(self, raw68_m: float, raw95_m: float,
+                         with_prior: bool) -> tuple[float, float]:
+        k68, k95 = self.calibration_factors(with_prior)
+        floor, cap = self.config.uncertainty_floor_m, MAX_DISTANCE_KM * 1000.0
+        r68 = min(max(floor, k68 * max(raw68_m, floor)), cap)
+        r95 = min(max(r68, k95 * max(raw95_m, floor)), cap)
+        return float(r68), float(r95)
+
+    def _no_match(self, prior: Prior | None, prior_result: PriorResult | None,
+                  flags: list[str], retrieval_ms: float) -> Hypothesis:
+        """Zero candidates (empty map or submaps): a flagged hypothesis, never an exception."""
+        cap = MAX_DISTANCE_KM * 1000.0
+        lat, lon = (prior.lat, prior.lon) if prior is not None else (math.nan, math.nan)
+        return Hypothesis(lat=lat, lon=lon, ref_id="", submap="", uncertainty_m=cap,
+                          radius95_m=cap, confidence=0.0, fusion=self.config.fusion,
+                          candidates=[], prior=prior, prior_result=prior_result,
+                          flags=tuple(flags + ["no_match"]),
+                          timings_ms={"retrieval_ms": retrieval_ms, "rerank_ms": 0.0})

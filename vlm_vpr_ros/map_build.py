@@ -272,6 +272,7 @@ def _build_staged(images_dir: Any, rows, desc: GlobalDescriptor, stage: StagedOu
     if stage.path.exists():
         shutil.rmtree(stage.path)  # a half-saved folder of an earlier attempt
     ref_map.save(stage.path)
+    write_map_calibration(ref_map, feats[keep], coords)
     stage.commit(validate=lambda p: ReferenceMap.load(p))
     dt = time.monotonic() - t0
     if skipped:
@@ -280,6 +281,19 @@ def _build_staged(images_dir: Any, rows, desc: GlobalDescriptor, stage: StagedOu
     log.info("built map %s: %d references (%d skipped), %d submaps, %.1f s (%.1f img/s)",
              out_dir, len(keep), len(skipped), len(ref_map.submaps), dt, len(rows) / dt)
     return ref_map
+
+
+def write_map_calibration(ref_map: ReferenceMap, desc: np.ndarray, coords: np.ndarray) -> None:
+    """The fusion's leave-one-out calibration, stored as the map's one optional
+    ``calibration.json`` (docs/fusion.md); rows of ``desc``/``coords`` in any order."""
+    from vlm_vpr_ros.fusion.calibration import calibrate_references, save_calibration
+    from vlm_vpr_ros.fusion.error_model import load_error_models
+
+    t0 = time.monotonic()
+    doc = calibrate_references(desc, coords, load_error_models().get())
+    save_calibration(ref_map, doc)
+    log.info("fusion calibration: %d leave-one-out queries, visual scale %s, %.1f s",
+             doc["loo"].get("queries", 0), doc["visual_scale"], time.monotonic() - t0)
 
 
 def fit_sample_indices(n: int, desc: GlobalDescriptor) -> np.ndarray:

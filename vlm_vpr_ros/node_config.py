@@ -20,7 +20,7 @@ from typing import Any, Mapping
 
 from vlm_vpr_ros.errors import ConfigError
 from vlm_vpr_ros.geodesy import MAX_DISTANCE_KM
-from vlm_vpr_ros.localizer import LocalizerConfig
+from vlm_vpr_ros.localizer import FUSION_MODES, LocalizerConfig
 
 MODES = ("continuous", "on_trigger")
 QOS_CHOICES = ("sensor_data", "best_effort", "reliable")
@@ -62,11 +62,15 @@ class NodeConfig:
                                      "settings under prior.*")
     prior_timeout_s: float = _p(30.0, "longest wait for a prior; then a flagged global fix",
                               0.001, 3600.0)
-    top_p: int = _p(50, "references retrieved before the re-rank by distance to the prior",
-                    1, 100000)
-    use_submaps: bool = _p(True, "search only the submap(s) nearest to the prior")
-    rerank: bool = _p(True, "re-rank the top-p references by haversine distance to the prior")
-    n_submaps: int = _p(1, "number of submaps searched around the prior", 1, 100000)
+    top_p: int = _p(50, "references retrieved before fusion with the prior", 1, 100000)
+    fusion: str = _p("posterior", "posterior: visual + prior likelihood over the submaps in the "
+                                  "prior's confidence region (docs/fusion.md); paper: nearest "
+                                  "submap + re-rank by distance to the prior",
+                     choices=FUSION_MODES)
+    use_submaps: bool = _p(True, "restrict the search to submap(s) chosen by the prior")
+    rerank: bool = _p(True, "use the prior when ranking candidates (false: visual order)")
+    n_submaps: int = _p(1, "paper fusion: number of submaps searched around the prior", 1,
+                        100000)
     mode: str = _p("continuous", "continuous: query the latest frame every min_period_s; "
                                  "on_trigger: only on the relocalize service", choices=MODES)
     min_period_s: float = _p(1.0, "least time between the starts of two queries (node clock: "
@@ -84,10 +88,14 @@ class NodeConfig:
     max_frame_age_s: float = _p(2.0, "relocalize uses the latest frame if received within "
                                      "this many seconds (node clock), else the next frame",
                                 0.001, 86400.0)
-    fallback_status: str = _p("no_fix", "NavSatFix status of flagged (fallback) fixes: "
-                                        "no_fix or fix", choices=FALLBACK_STATUS)
-    fallback_min_sigma_m: float = _p(25000.0, "least 1-sigma radius of a flagged fix (m)",
-                                     0.0, MAX_SIGMA_M)
+    fix_max_sigma_m: float = _p(50.0, "STATUS_FIX only when the fix's calibrated per-axis "
+                                      "sigma is at most this (m); else STATUS_NO_FIX", 0.001,
+                                MAX_SIGMA_M)
+    fallback_status: str = _p("no_fix", "NavSatFix status of fixes whose sigma exceeds "
+                                        "fix_max_sigma_m: no_fix or fix",
+                              choices=FALLBACK_STATUS)
+    fallback_min_sigma_m: float = _p(0.0, "least 1-sigma of a fix exceeding fix_max_sigma_m "
+                                          "(m; 0 = its calibrated sigma)", 0.0, MAX_SIGMA_M)
     altitude_m: float = _p(0.0, "altitude published in the fix (images give none)",
                            -11000.0, 100000.0)
     altitude_sigma_m: float = _p(1000.0, "1-sigma of the published altitude (m)", 0.001,
@@ -100,8 +108,9 @@ class NodeConfig:
                                      metadata={"doc": "descriptor settings (device, weights)"})
 
     def localizer_config(self) -> LocalizerConfig:
-        return LocalizerConfig(top_p=self.top_p, use_submaps=self.use_submaps,
-                               rerank=self.rerank, n_submaps=self.n_submaps)
+        return LocalizerConfig(top_p=self.top_p, fusion=self.fusion,
+                               use_submaps=self.use_submaps, rerank=self.rerank,
+                               n_submaps=self.n_submaps)
 
 
 #: scalar parameters: name → spec, in declaration order
@@ -179,7 +188,7 @@ def validate(cfg: NodeConfig) -> None:
                                        f"got {cfg.qos_depth}")
     _require(cfg.subscribe_raw or cfg.subscribe_compressed,
              "subscribe_raw and subscribe_compressed are both false: nothing to localize")
-    cfg.localizer_config()  # raises ConfigError on top_p/n_submaps < 1
+    cfg.localizer_config()  # raises ConfigError on top_p/n_submaps < 1, unknown fusion
     for spec in PARAMETER_SPECS.values():  # the declared ranges (after the specific checks)
         v = getattr(cfg, spec.name)
         if spec.range is not None:

@@ -123,7 +123,7 @@ class _Wiring:
             verify=cfg.verify_map)
         self._provider = create_prior_provider(cfg.prior_provider, cfg.prior)
         self.policy = FixPolicy(cfg.fallback_status, cfg.fallback_min_sigma_m, cfg.altitude_m,
-                                cfg.altitude_sigma_m)
+                                cfg.altitude_sigma_m, cfg.fix_max_sigma_m)
         self._flag_log = Throttle(10.0)
         self._stats = RuntimeStats(self._provider.name, cfg.mode)
         self.fix_pub = make_publisher(NavSatFix, "fix", 10)
@@ -269,6 +269,7 @@ class _Wiring:
         level, message, values = self._stats.report(busy=bool(runtime and runtime.busy))
         pipe = runtime.pipeline if runtime is not None else self.pipeline
         values = {"map_dir": self.cfg.map_dir, "descriptor": pipe.descriptor.name,
+                  "fusion": self.cfg.fusion, "calibration": pipe.localizer.calibration_source,
                   "map_references": pipe.map.n_references,
                   "map_generation": pipe.map.manifest.get("generation", 0), **values}
         self.diag_pub.publish(diagnostic_array(

@@ -79,6 +79,8 @@ class RuntimeStats:
             pr = hyp.prior_result
             self.last = {
                 "lat": hyp.lat, "lon": hyp.lon, "sigma_m": hyp.uncertainty_m,
+                "radius68_m": hyp.uncertainty_m, "radius95_m": hyp.radius95_m,
+                "confidence": hyp.confidence, "fusion": hyp.fusion or "none",
                 "ref_id": hyp.ref_id, "submap": hyp.submap, "candidates": len(hyp.candidates),
                 "flags": "|".join(hyp.flags) or "none", "flagged": hyp.flagged,
                 "prior_source": hyp.prior.source if hyp.prior else (pr.source if pr else "none"),

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -18,6 +19,7 @@ class Candidate:
     l2_sq: float  # squared L2 descriptor distance to the query
     submap: str
     prior_km: float | None = None  # haversine distance to the prior (None without prior)
+    posterior: float | None = None  # posterior weight after fusion (docs/fusion.md)
 
 
 @dataclass
@@ -28,12 +30,15 @@ class Hypothesis:
     lon: float
     ref_id: str
     submap: str  # chosen submap id(s), "+"-joined; "*" for the global set
-    uncertainty_m: float  # 1-sigma-like horizontal radius, finite; see README "Uncertainty"
+    uncertainty_m: float  # calibrated radius holding the truth with 68 % probability (m)
     candidates: list[Candidate] = field(default_factory=list)
     prior: Prior | None = None
     prior_result: PriorResult | None = None
     flags: tuple[str, ...] = ()
     timings_ms: dict[str, float] = field(default_factory=dict)
+    radius95_m: float = math.nan  # calibrated 95 % radius (m); NaN: not computed
+    confidence: float = math.nan  # posterior mass within the vote radius of the estimate
+    fusion: str = ""  # fusion mode that produced the hypothesis ("posterior" / "paper")
 
     @property
     def flagged(self) -> bool:
@@ -54,6 +59,9 @@ class Hypothesis:
             "submap": self.submap,
             "ref_id": self.ref_id,
             "uncertainty_m": f"{self.uncertainty_m:.1f}",
+            "radius95_m": "" if math.isnan(self.radius95_m) else f"{self.radius95_m:.1f}",
+            "confidence": "" if math.isnan(self.confidence) else f"{self.confidence:.4f}",
+            "fusion": self.fusion,
             "n_candidates": len(self.candidates),
             "flags": "|".join(self.flags),
         }
@@ -61,5 +69,5 @@ class Hypothesis:
 
 #: flags that mark a hypothesis as a fallback rather than the full method
 FALLBACK_FLAGS = frozenset({
-    "no_prior", "prior_failed", "prior_not_in_map", "prior_far_from_match",
+    "no_prior", "prior_failed", "prior_not_in_map", "prior_far_from_match", "no_match",
 })

@@ -20,6 +20,7 @@ _COMMAND_MODULES = (
     "vlm_vpr_ros.cli.bag",       # bag make, replay, evaluate-bag, ablate
     "vlm_vpr_ros.cli.map",       # map add / remove / info / verify / upgrade
     "vlm_vpr_ros.cli.distributed",  # describe (descriptor shards; local or Ray engine)
+    "vlm_vpr_ros.cli.calibrate",  # calibrate (uncertainty radii on labelled queries)
 )
 
 

@@ -6,7 +6,7 @@ import argparse
 
 from vlm_vpr_ros.config import parse_kv
 from vlm_vpr_ros.csvio import write_csv_atomic  # noqa: F401  (re-exported for the CLI)
-from vlm_vpr_ros.localizer import LocalizerConfig
+from vlm_vpr_ros.localizer import FUSION_MODES, LocalizerConfig
 from vlm_vpr_ros.priors import PriorProvider, available_prior_providers, create_prior_provider
 
 
@@ -37,19 +37,23 @@ def make_prior_provider(args: argparse.Namespace) -> PriorProvider:
 def add_localizer_args(parser: argparse.ArgumentParser) -> None:
     g = parser.add_argument_group("localizer")
     g.add_argument("--top-p", type=int, default=50, metavar="N",
-                   help="references retrieved before re-ranking (default 50)")
+                   help="references retrieved before fusion (default 50)")
+    g.add_argument("--fusion", choices=FUSION_MODES, default="posterior",
+                   help="posterior (default): visual + prior likelihood over the prior's "
+                        "confidence region, calibrated radii; paper: nearest submap + re-rank "
+                        "by distance to the prior (docs/fusion.md)")
     g.add_argument("--no-submap", action="store_true",
                    help="search the whole map even with a prior (ablation)")
     g.add_argument("--no-rerank", action="store_true",
-                   help="keep the best descriptor match instead of re-ranking by distance to "
-                        "the prior (ablation)")
+                   help="ignore the prior when ranking candidates (ablation)")
     g.add_argument("--n-submaps", type=int, default=1, metavar="N",
-                   help="search the N submaps nearest to the prior (default 1)")
+                   help="paper fusion: search the N submaps nearest to the prior (default 1)")
 
 
 def localizer_config(args: argparse.Namespace) -> LocalizerConfig:
-    return LocalizerConfig(top_p=args.top_p, use_submaps=not args.no_submap,
-                           rerank=not args.no_rerank, n_submaps=args.n_submaps)
+    return LocalizerConfig(top_p=args.top_p, fusion=args.fusion,
+                           use_submaps=not args.no_submap, rerank=not args.no_rerank,
+                           n_submaps=args.n_submaps)
 
 
 def add_descriptor_option_args(parser: argparse.ArgumentParser) -> None:

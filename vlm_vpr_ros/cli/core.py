@@ -306,8 +306,12 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         sys.stdout.write("\n")
         return 0
     print(format_table({"results": summary}, title=f"accuracy of {args.results}"))
-    print(f"uncertainty radius covers the error in {extra['coverage_pct']:.1f}% of rows; "
-          f"{extra['flagged']} flagged rows; {extra['missing_gt']} rows without ground truth")
+    c95 = extra["coverage95_pct"]
+    print(f"coverage: the 68 % radius (uncertainty_m) holds the truth in "
+          f"{extra['coverage_pct']:.1f}% of rows, the 95 % radius (radius95_m) in "
+          + ("- (no radius95_m column)" if c95 is None else f"{c95:.1f}%")
+          + f"; {extra['flagged']} flagged rows; {extra['missing_gt']} rows without ground "
+          "truth")
     return 0
 
 

@@ -24,6 +24,9 @@ class Prior:
     lat: float
     lon: float
     source: str  # provider name, e.g. "openai:gpt-4o", "fixed", "recorded"
+    #: the provider's own error scale (km, 1-sigma of a 2-D Gaussian-like error) when it has
+    #: one; None: the fusion uses the fitted VLM error model of the source (docs/fusion.md)
+    sigma_km: float | None = None
 
 
 @dataclass(frozen=True)

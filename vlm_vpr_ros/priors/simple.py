@@ -33,11 +33,15 @@ class FixedPrior(PriorProvider):
 
     name = "fixed"
 
-    def __init__(self, lat: float, lon: float) -> None:
+    def __init__(self, lat: float, lon: float, sigma_km: float | None = None) -> None:
         lat, lon = float(lat), float(lon)
         if not valid_latlon(lat, lon):
             raise PriorError(f"fixed prior ({lat}, {lon}) is not a valid WGS-84 position")
-        self.prior = Prior(lat, lon, self.name)
+        if sigma_km is not None:
+            sigma_km = float(sigma_km)
+            if not (math.isfinite(sigma_km) and sigma_km > 0):
+                raise PriorError(f"fixed prior sigma_km must be > 0, got {sigma_km}")
+        self.prior = Prior(lat, lon, self.name, sigma_km)
 
     def _compute(self, query: PriorQuery) -> PriorResult:
         return PriorResult(self.prior, self.name)

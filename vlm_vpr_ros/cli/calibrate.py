@@ -1,0 +1,117 @@
+"""``vlm-vpr calibrate``: calibrate a map's 68 / 95 % radii on the user's own labelled queries.
+
+Split-conformal: for the results of ``vlm-vpr localize`` with this map, the factors that make
+``error <= k * radius`` hold for 68 % (95 %) of the rows (finite-sample quantile), separately for
+rows with and without a prior, multiply the factors the results were produced with. They are
+stored as the ``user`` section of the map's ``calibration.json`` (the build-time leave-one-out
+section is kept) and override it from the next start of the node or CLI. docs/fusion.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import os
+
+from vlm_vpr_ros.errors import DataError
+
+log = logging.getLogger(__name__)
+MIN_ROWS = 10
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "calibrate", help="calibrate a map's uncertainty radii on labelled queries",
+        description="Conformal calibration of the 68 %% / 95 %% radii from a results CSV of "
+                    "'vlm-vpr localize' on this map and its ground truth; stored in the map's "
+                    "calibration.json (docs/fusion.md).")
+    p.add_argument("--results", required=True, metavar="RESULTS.csv")
+    p.add_argument("--ground-truth", required=True, metavar="CSV",
+                   help="file, lat, lon (or IMG_ID, LAT, LON)")
+    p.add_argument("--map", required=True, metavar="MAP", help="the map the results came from")
+    p.add_argument("--dry-run", action="store_true", help="print the factors, write nothing")
+    p.set_defaults(func=cmd_calibrate)
+
+
+def _num(v) -> float | None:
+    try:
+        x = float(v)
+    except (TypeError, ValueError):
+        return None
+    return x if math.isfinite(x) and x > 0 else None
+
+
+def calibration_ratios(results_csv, ground_truth_csv) -> dict[str, dict[str, list[float]]]:
+    """error / radius per regime ("prior" / "no_prior") and level ("68" / "95")."""
+    from vlm_vpr_ros.csvio import read_table
+    from vlm_vpr_ros.evaluation import read_ground_truth
+    from vlm_vpr_ros.geodesy import haversine_km
+
+    gt = read_ground_truth(ground_truth_csv)
+    by_base = {os.path.basename(k): v for k, v in gt.items()}
+    rows = read_table(results_csv, ("file", "lat", "lon", "uncertainty_m", "radius95_m"),
+                      "results CSV")
+    out: dict[str, dict[str, list[float]]] = {r: {"68": [], "95": []}
+                                              for r in ("prior", "no_prior")}
+    for row in rows:
+        g = gt.get(row["file"]) or by_base.get(os.path.basename(row["file"]))
+        r68, r95 = _num(row.get("uncertainty_m")), _num(row.get("radius95_m"))
+        try:
+            lat, lon = float(row["lat"]), float(row["lon"])
+        except (TypeError, ValueError):
+            continue
+        if g is None or r68 is None or r95 is None or not (math.isfinite(lat)
+                                                            and math.isfinite(lon)):
+            continue
+        err_m = float(haversine_km(g[0], g[1], lat, lon)) * 1000.0
+        regime = "prior" if (row.get("prior_lat") or "").strip() else "no_prior"
+        out[regime]["68"].append(err_m / r68)
+        out[regime]["95"].append(err_m / r95)
+    return out
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    from vlm_vpr_ros.fusion.calibration import (CALIBRATION_FORMAT, CALIBRATION_VERSION,
+                                                conformal_factor, load_calibration,
+                                                save_calibration)
+    from vlm_vpr_ros.localizer import Localizer
+    from vlm_vpr_ros.map_io import ReferenceMap
+
+    ref_map = ReferenceMap.load(args.map)
+    loc = Localizer(ref_map)
+    ratios = calibration_ratios(args.results, args.ground_truth)
+    doc = load_calibration(ref_map) or {"format": CALIBRATION_FORMAT,
+                                        "version": CALIBRATION_VERSION, "visual_scale": None,
+                                        "beta": 1.0, "miss_prob": 0.05, "regimes": {},
+                                        "loo": {"queries": 0}}
+    user = dict(doc.get("user") or {})
+    done = 0
+    for regime, r in ratios.items():
+        n = len(r["68"])
+        if n == 0:
+            continue
+        cov68 = 100.0 * sum(x <= 1.0 for x in r["68"]) / n
+        cov95 = 100.0 * sum(x <= 1.0 for x in r["95"]) / n
+        if n < MIN_ROWS:
+            print(f"{regime}: {n} rows (< {MIN_ROWS}), not calibrated; coverage now "
+                  f"{cov68:.1f}% / {cov95:.1f}%")
+            continue
+        k68_old, k95_old = loc.calibration_factors(regime == "prior")
+        c68, c95 = conformal_factor(r["68"], 0.68), conformal_factor(r["95"], 0.95)
+        user[regime] = {"k68": k68_old * c68, "k95": k95_old * c95, "n": n,
+                        "results": os.path.basename(str(args.results))}
+        done += 1
+        print(f"{regime}: {n} rows; coverage now 68 %: {cov68:.1f}%, 95 %: {cov95:.1f}%; "
+              f"radii x{c68:.3g} / x{c95:.3g} -> factors k68 {user[regime]['k68']:.4g}, "
+              f"k95 {user[regime]['k95']:.4g}")
+    if not done:
+        raise DataError(f"{args.results}: need at least {MIN_ROWS} rows with ground truth, "
+                        "estimates and radii (uncertainty_m, radius95_m) in one regime")
+    if args.dry_run:
+        print("dry run: nothing written")
+        return 0
+    doc["user"] = user
+    path = save_calibration(ref_map, doc)
+    print(f"wrote {path} (used from the next start of the node / CLI)")
+    return 0

@@ -1,0 +1,140 @@
+"""Posterior over retrieved candidates, geographic voting and the 68 / 95 % radii.
+
+For candidate ``i`` with squared descriptor distance ``d_i`` and great-circle distance ``g_i`` to
+the prior::
+
+    log w_i = -beta * (d_i - min_j d_j) / T  +  log p_err(g_i)      (then normalized)
+
+``T`` is the map's visual scale (nearest-neighbour statistics stored at build time, or the
+query's own candidate spread for maps without them), ``beta`` its calibrated sharpness, and
+``p_err`` the prior's error model as an areal density (see :mod:`.error_model`). Without a prior
+the second term is absent.
+
+Geographic voting: the estimate is the candidate with the largest posterior mass within
+``vote_radius_m`` of it (places that agree add up), ties broken by the candidate's own weight;
+only the 64 most probable candidates vote and can win (the others' mass is negligible).
+
+Radii: the smallest radius around the estimate that holds 68 % (95 %) of a mixture of the
+candidates' posterior masses (each a point) and a *miss* component of mass ``m0`` — the chance
+that no candidate is the place — spread over the map's references (a fixed sample of their
+positions), weighted by the prior's likelihood when there is a prior. The raw radii are then
+multiplied by conformal factors (:mod:`.calibration`) and floored at the place radius.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from vlm_vpr_ros.fusion.error_model import ErrorModel
+from vlm_vpr_ros.geodesy import EARTH_RADIUS_KM, MAX_DISTANCE_KM, haversine_km, latlon_to_unit
+
+
+#: geographic voting considers this many most probable candidates
+VOTERS = 64
+
+
+@dataclass
+class Posterior:
+    weights: np.ndarray  # (n,) normalized posterior weight of each candidate
+    votes: np.ndarray  # (n,) posterior mass within the vote radius of each candidate
+    best: int  # index of the estimate
+    r68_m: float  # raw (uncalibrated) radii around the estimate
+    r95_m: float
+    miss_mass: float
+    extra: dict = field(default_factory=dict)
+
+
+def _mixture_radius(q: float, point_d_km: np.ndarray, point_w: np.ndarray, miss_mass: float,
+                    miss_cdf) -> float:
+    """Smallest r (km) with sum(point_w[d <= r]) + miss_mass * miss_cdf(r) >= q."""
+    order = np.argsort(point_d_km, kind="stable")
+    d_sorted = point_d_km[order]
+    cum = np.cumsum(point_w[order])
+    mass_at = cum + miss_mass * miss_cdf(d_sorted)
+    ok = mass_at >= q
+    k = int(np.argmax(ok)) if ok.any() else len(d_sorted)
+    lo = float(d_sorted[k - 1]) if k > 0 else 0.0
+    hi = float(d_sorted[k]) if k < len(d_sorted) else MAX_DISTANCE_KM
+    below = float(cum[k - 1]) if k > 0 else 0.0  # point mass inside (lo, hi) is constant
+
+    if below + miss_mass * float(miss_cdf(np.array([hi]))[0]) < q and k == len(d_sorted):
+        return hi
+    for _ in range(50):
+        mid = 0.5 * (lo + hi)
+        if below + miss_mass * float(miss_cdf(np.array([mid]))[0]) >= q:
+            hi = mid
+        else:
+            lo = mid
+    return hi
+
+
+def fuse(l2_sq: np.ndarray, lat: np.ndarray, lon: np.ndarray, visual_scale: float,
+         beta: float = 1.0, prior: tuple[float, float] | None = None,
+         error_model: ErrorModel | None = None, use_prior_term: bool = True,
+         vote_radius_m: float = 25.0, miss_prob: float = 0.05,
+         background: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+         fixed_best: int | None = None) -> Posterior:
+    """Posterior, vote and raw radii for one query's candidates (arrays of equal length > 0).
+
+    ``miss_prob``: probability that no candidate is the place (calibrated at build time, see
+    :mod:`.calibration`). ``background``: (lat, lon, weight) of the map's mass (submap centroids
+    and counts), the miss component's spread without a prior. ``fixed_best``: use this candidate
+    as the estimate (the paper mode) instead of the vote."""
+    d = np.asarray(l2_sq, dtype=np.float64)
+    lat = np.asarray(lat, dtype=np.float64)
+    lon = np.asarray(lon, dtype=np.float64)
+    scale = visual_scale if visual_scale > 0 and math.isfinite(visual_scale) else 1.0
+    logw = -beta * (d - d.min()) / scale
+    has_prior = prior is not None and error_model is not None
+    g_km = None
+    if has_prior:
+        g_km = np.atleast_1d(haversine_km(prior[0], prior[1], lat, lon))
+        if use_prior_term:
+            logw = logw + error_model.log_density(g_km)
+    logw -= logw.max()
+    w = np.exp(logw)
+    w /= w.sum()
+    # votes: posterior mass within the vote radius of each candidate (unit-vector dot products)
+    # votes among the VOTERS most probable candidates (the rest carry negligible mass)
+    top = np.argsort(-w, kind="stable")[:VOTERS]
+    xyz = latlon_to_unit(lat[top], lon[top])
+    dots = (xyz[:, 0, None] * xyz[None, :, 0] + xyz[:, 1, None] * xyz[None, :, 1]
+            + xyz[:, 2, None] * xyz[None, :, 2])
+    near = dots >= math.cos(vote_radius_m / 1000.0 / EARTH_RADIUS_KM)
+    votes = np.zeros_like(w)
+    votes[top] = np.where(near, w[top][None, :], 0.0).sum(axis=1)
+    if fixed_best is not None:
+        best = int(fixed_best)
+    else:  # most votes, then own weight (top is sorted by weight: first maximum wins)
+        best = int(top[int(np.argmax(np.round(votes[top], 12)))])
+    dist_best = np.atleast_1d(haversine_km(lat[best], lon[best], lat, lon))
+    miss = float(min(max(miss_prob, 0.0), 1.0))
+    if background is not None and len(background[0]):
+        blat, blon, bw = (np.asarray(v, dtype=np.float64) for v in background)
+        if has_prior and use_prior_term:  # mapped places, weighted by the prior's likelihood
+            lg = error_model.log_density(haversine_km(prior[0], prior[1], blat, blon))
+            bw = bw * np.exp(lg - np.max(lg))
+        bd = np.atleast_1d(haversine_km(lat[best], lon[best], blat, blon))
+        order = np.argsort(bd, kind="stable")
+        bd = bd[order]
+        bcum = np.cumsum(bw[order])
+        bcum = bcum / bcum[-1] if bcum[-1] > 0 else np.ones_like(bcum)
+
+        def miss_cdf(r: np.ndarray) -> np.ndarray:  # truth: a mapped place not retrieved
+            k = np.searchsorted(bd, r, side="right")
+            return np.where(k > 0, bcum[np.maximum(k - 1, 0)], 0.0)
+    elif has_prior:
+        g_best = float(g_km[best])
+
+        def miss_cdf(r: np.ndarray) -> np.ndarray:  # truth ~ error model around the prior
+            return error_model.cdf(np.maximum(0.0, r - g_best))
+    else:
+        def miss_cdf(r: np.ndarray) -> np.ndarray:
+            return np.zeros_like(np.asarray(r, dtype=np.float64))
+    pw = w * (1.0 - miss)
+    r68 = _mixture_radius(0.68, dist_best, pw, miss, miss_cdf) * 1000.0
+    r95 = _mixture_radius(0.95, dist_best, pw, miss, miss_cdf) * 1000.0
+    return Posterior(w, votes, best, r68, max(r68, r95), miss, {"prior_km": g_km})
