@@ -67,10 +67,17 @@ def test_manifest_structure(cli, map_copy, demo_data, queries, tmp_path, edit, n
 @pytest.mark.fault("map_ids_outside")
 def test_ids_outside_images_folder(cli, map_copy, demo_data, queries, tmp_path):
     rel = _manifest(map_copy)["submaps"][0]["files"]["ids"]
-    ids = json.loads((map_copy / rel).read_text())
+    v2 = rel.endswith(".npy")  # format v2: a fixed-width bytes array; v1: a JSON list
+    ids = ([i.decode() for i in np.load(map_copy / rel)] if v2
+           else json.loads((map_copy / rel).read_text()))
     for bad in ("../../etc/passwd", "/etc/passwd"):
         ids[0] = bad
-        (map_copy / rel).write_text(json.dumps(ids))
+        if v2:
+            from vlm_vpr_ros.maps.store import encode_ids
+
+            np.save(map_copy / rel, encode_ids(ids), allow_pickle=False)
+        else:
+            (map_copy / rel).write_text(json.dumps(ids))
         _rehash(map_copy, rel)
         exit2(_localize(cli, map_copy, demo_data, queries, tmp_path),
               "points outside the images folder")

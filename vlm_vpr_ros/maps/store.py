@@ -68,6 +68,21 @@ def save_index(path: Path, index: Any) -> None:
     _fsync_replace(tmp, path)
 
 
+def _check_ids(root: Path, rel: str, raw: np.ndarray) -> None:
+    """Ids are image paths inside the images folder (issue 10's rule, as for v1 maps): a cheap
+    vectorized pre-filter, then the exact check on the few suspects."""
+    from vlm_vpr_ros.map_validate import _check_ref_id
+
+    if raw.size == 0:
+        return
+    bad = (np.char.str_len(raw) == 0) | (np.char.find(raw, b"..") >= 0)
+    for lead in (b"/", b"\\"):
+        bad |= np.char.startswith(raw, lead)
+    bad |= np.char.find(raw, b":") == 1
+    for k in np.flatnonzero(bad)[:1000]:
+        _check_ref_id(root, rel, raw[k].decode("utf-8", "replace"))
+
+
 def encode_ids(ids: list[str]) -> np.ndarray:
     """Reference ids as one fixed-width UTF-8 array (width = the longest id of the submap)."""
     raw = [str(i).encode("utf-8") for i in ids]
@@ -220,6 +235,7 @@ class LazySubmap:
         if self.count and not np.all(np.isfinite(coords[: min(self.count, 4096)])):
             raise MapError(f"{root}: submap {sid} coordinates are not finite")
         raw = _load_array(root, self.files["ids"], (self.count,), "S")
+        _check_ids(root, self.files["ids"], raw)
         rerank = None
         if self.kind == "pq":
             rerank = _load_array(root, self.files["vectors"], (self.count, self.dim), "f2")
