@@ -193,7 +193,7 @@ def test_build_from_single_npy_and_localize_query_descriptors(ref512, tmp_path, 
     np.save(tmp_path / "q5.npy", q[:5])
     assert main(["localize", "--map", str(out), "--query-descriptors",
                  str(tmp_path / "q5.npy"), "--queries", str(tmp_path / "q.csv"),
-                 "--out", str(res)]) == 2
+                 "--out", str(tmp_path / "r5.csv")]) == 2
     assert "5 query descriptors but the queries CSV has 12 rows" in caplog.text
 
 
@@ -320,11 +320,12 @@ def test_interrupted_descriptor_build_resumes(ref512, tmp_path, monkeypatch):
     args = (d / "desc.npy", d / "coords.csv", tmp_path / "m", "cosplace")
     with pytest.raises(KeyboardInterrupt):
         build_from_descriptors(*args, clusters=4, index="fp16", progress=False)
-    assert len(list((tmp_path / "m" / ".build" / "subs").glob("*.json"))) == 2
+    work = tmp_path / ".m.partial" / "work"  # staged beside the target (vlm_vpr_ros.outputs)
+    assert len(list((work / "subs").glob("*.json"))) == 2
     calls["n"] = -100
     m = build_from_descriptors(*args, clusters=4, index="fp16", progress=False)
     assert calls["n"] == -100 + 2  # only the two unfinished submaps were built again
-    assert m.n_references == 3000 and not (tmp_path / "m" / ".build").exists()
+    assert m.n_references == 3000 and not (tmp_path / ".m.partial").exists()
     again = build_from_descriptors(*args, clusters=4, index="fp16", progress=False)
     assert calls["n"] == -98 and again.n_references == 3000  # up to date: nothing rebuilt
     with pytest.raises(MapError, match="--overwrite"):
@@ -349,10 +350,12 @@ def test_balanced_submaps_and_prior_choice(tmp_path):
     m.save(tmp_path / "b")
     m = ReferenceMap.load(tmp_path / "b")
     assert len(m.group_members(pieces[0].group)) == len(pieces)
-    loc = Localizer(m, LocalizerConfig(top_p=5))
+    loc = Localizer(m, LocalizerConfig(top_p=5, fusion="paper"))
+    fused = Localizer(m, LocalizerConfig(top_p=5))  # posterior: the prior's whole region
     # a prior in the split cluster searches the piece whose centroid is nearest to it
     for r in rng.integers(0, 1500, 10):
         chosen, _ = loc.select_submaps(Prior(*pos[r], "t"))
+        assert chosen[0] in fused.select_submaps(Prior(*pos[r], "t"))[0]
         sub = m.submaps[chosen[0]]
         d_all = [((s.centroid[0] - pos[r][0]) ** 2 + (s.centroid[1] - pos[r][1]) ** 2)
                  for s in m.submaps]
