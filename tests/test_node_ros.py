@@ -185,8 +185,12 @@ def test_slow_vlm_does_not_delay_intake_on_trigger(demo_map, tmp_path, rgb):
             if v.get("query_in_progress") == "true"]
     assert len(busy) >= 5, "diagnostics were not published while the query was pending"
     (f0, t0_ns), (f1, t1_ns) = busy[0], busy[-1]
-    rate = (f1 - f0) / ((t1_ns - t0_ns) / 1e9)
-    assert rate > 0.6 * 30.0, f"intake {rate:.1f} Hz while the VLM call was pending"
+    # compared with what the camera really sent in the same window (one run, a ratio: the
+    # publisher itself slows down on a loaded machine, the property is that intake keeps up)
+    sent = sum(1 for s in stamps.sent if t0_ns <= s <= t1_ns)
+    assert sent >= 30, f"the test publisher sent only {sent} frames in the window"
+    assert f1 - f0 >= 0.7 * sent, (f"intake {f1 - f0} of {sent} frames sent while the VLM "
+                                   "call was pending")
     fix = client.fixes[-1][0]
     assert fix.status.status == FIX and stamp_of(fix) in stamps.sent
     assert haversine_km(fix.latitude, fix.longitude, *TRUTH) < 1.0
