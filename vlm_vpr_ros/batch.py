@@ -14,7 +14,8 @@ from typing import Iterator, Sequence
 from vlm_vpr_ros.errors import ImageDecodeError, VlmVprError
 from vlm_vpr_ros.imageio import load_image
 from vlm_vpr_ros.pipeline import LocalizationPipeline
-from vlm_vpr_ros.priors.base import PriorProvider, PriorQuery, wait_prior
+from vlm_vpr_ros.priors.base import PriorProvider, PriorQuery, PriorResult, wait_prior
+from vlm_vpr_ros.types import Hypothesis
 
 log = logging.getLogger(__name__)
 
@@ -72,10 +73,15 @@ def localize_files(pipeline: LocalizationPipeline, provider: PriorProvider,
             yield {"file": f, "flags": "error",
                    "prior_reason": f"internal error: {type(exc).__name__}: {exc}"}
             continue
-        row = {"file": f, **hyp.as_row(), "prior_latency_s": f"{prior.latency_s:.3f}"}
-        row.update({k: f"{v:.2f}" for k, v in hyp.timings_ms.items()})
-        row["descriptor_ms"] = f"{t_desc:.2f}"
-        yield row
+        yield result_row(f, hyp, prior, t_desc)
+
+
+def result_row(file: str, hyp: Hypothesis, prior: PriorResult, descriptor_ms: float) -> dict:
+    """One results-CSV row (columns of :data:`RESULT_FIELDS`) for a localized query."""
+    row = {"file": file, **hyp.as_row(), "prior_latency_s": f"{prior.latency_s:.3f}"}
+    row.update({k: f"{v:.2f}" for k, v in hyp.timings_ms.items()})
+    row["descriptor_ms"] = f"{descriptor_ms:.2f}"
+    return row
 
 
 # -- streamed results (localize --out, --resume) -----------------------------------------------

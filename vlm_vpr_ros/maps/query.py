@@ -15,6 +15,7 @@ from typing import Iterator, Sequence
 
 import numpy as np
 
+from vlm_vpr_ros.batch import result_row
 from vlm_vpr_ros.errors import DataError, ImageDecodeError, VlmVprError
 from vlm_vpr_ros.localizer import Localizer
 from vlm_vpr_ros.maps.sources import open_npy
@@ -76,7 +77,4 @@ def localize_descriptors(localizer: Localizer, provider: PriorProvider, files: S
             log.warning("query %s failed: %s", f, exc)
             yield {"file": f, "flags": "error", "prior_reason": str(exc)}
             continue
-        row = {"file": f, **hyp.as_row(), "prior_latency_s": f"{prior.latency_s:.3f}"}
-        row.update({k: f"{v:.2f}" for k, v in hyp.timings_ms.items()})
-        row["descriptor_ms"] = "0.00"
-        yield row
+        yield result_row(f, hyp, prior, 0.0)  # no descriptor computed
