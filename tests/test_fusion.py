@@ -301,3 +301,29 @@ def test_cli_calibrate_sets_the_user_factors(tmp_path, capsys):
     (tmp_path / "few.csv").write_text("file,lat,lon,uncertainty_m,radius95_m\nq0.jpg,40,-3.7,"
                                       "5,9\n")
     assert main(args[:2] + [str(tmp_path / "few.csv")] + args[3:]) == 2
+
+
+@pytest.mark.parametrize("q", [0.68, 0.95])
+def test_mixture_radius_matches_a_scalar_bisection(q):
+    """The vectorized radius search equals a plain 60-step scalar bisection (independent
+    reference) for a continuous miss CDF and for a step-function one."""
+    from vlm_vpr_ros.fusion.posterior import _mixture_radius
+
+    rng = np.random.default_rng(5)
+    d = np.sort(rng.uniform(0, 3000, 40))
+    w = rng.dirichlet(np.ones(40)) * 0.7
+    steps = np.sort(rng.uniform(0, 15000, 200))
+    cdfs = {"smooth": lambda r: 1.0 - np.exp(-np.asarray(r, dtype=float) / 800.0),
+            "steps": lambda r: np.searchsorted(steps, r, side="right") / len(steps)}
+    for name, cdf in cdfs.items():
+        got = _mixture_radius(q, d, w, 0.3, cdf)
+
+        def mass(r):
+            return w[d <= r].sum() + 0.3 * float(np.asarray(cdf(np.array([r])))[0])
+
+        lo, hi = 0.0, MAX_DISTANCE_KM
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (lo, mid) if mass(mid) >= q else (mid, hi)
+        assert got == pytest.approx(hi, rel=1e-5, abs=5e-3), name
+        assert mass(got) >= q - 1e-12

@@ -456,3 +456,71 @@ def test_map_remove_keeps_pq_submaps_searchable(pq_map, ref512, tmp_path):
     got = Localizer(m).localize(x[5], None)
     assert got.ref_id != "img/00005.jpg"
     assert Localizer(m).localize(x[7], None).ref_id == "img/00007.jpg"
+
+
+def test_built_submaps_hold_exactly_their_rows_after_the_sort_pass(ref512, tmp_path):
+    """The sequential by-submap pass: every submap's stored vectors are the input rows of its
+    ids (fp16-rounded for pq), its stored radius is the true max centroid distance."""
+    from vlm_vpr_ros.geodesy import haversine_km
+
+    d, x, pos, ids = ref512
+    row_of = {f: i for i, f in enumerate(ids)}
+    for kind in ("flat", "pq"):
+        m = build_from_descriptors(d / "desc.npy", d / "coords.csv", tmp_path / kind,
+                                   "cosplace", clusters=6, index=kind, progress=False)
+        man = json.loads((tmp_path / kind / "manifest.json").read_text())
+        for sub, entry in zip(m.submaps, man["submaps"]):
+            rows = np.array([row_of[i] for i in sub.ids])
+            assert np.all(np.diff(rows) > 0)  # ascending input rows
+            if sub.kind == "fp16":  # small submaps of a pq map: FAISS's own fp16 rounding
+                np.testing.assert_allclose(sub.vectors(), x[rows], rtol=1e-3, atol=1e-4)
+            else:
+                want = x[rows] if kind == "flat" else x[rows].astype(np.float16)
+                np.testing.assert_array_equal(sub.vectors(), want.astype(np.float32))
+            np.testing.assert_allclose(sub.coords, pos[rows], atol=1e-6)
+            far = np.max(haversine_km(*sub.centroid, pos[rows, 0], pos[rows, 1]))
+            assert entry["radius_km"] == pytest.approx(far, abs=1e-3)
+        assert sum(s.count for s in m.submaps) == len(x)
+
+
+def test_localizer_start_opens_no_submap_and_many_pq_submaps_merge_like_one_index(
+        ref512, tmp_path):
+    """Creating a Localizer reads no index (radii come from the manifest); a search over
+    several pq submaps re-ranks the best PQ candidates of all of them once and returns the
+    exact fp16 distances, as brute force over their union does."""
+    d, x, pos, ids = ref512
+    m = build_from_descriptors(d / "desc.npy", d / "coords.csv", tmp_path / "m", "cosplace",
+                               clusters=5, index="pq", progress=False)
+    m = ReferenceMap.load(tmp_path / "m")
+    loc = Localizer(m)  # posterior fusion: region radii + background sample
+    assert not any(s.is_open for s in m.submaps)
+    x16 = x.astype(np.float16).astype(np.float32)
+    row_of = {f: i for i, f in enumerate(ids)}
+    everything = list(range(len(m.submaps)))
+    rng = np.random.default_rng(4)
+    hits1 = hits20 = 0.0
+    for _ in range(20):
+        a, b = rng.integers(0, len(x), 2)
+        q = (x[a] + 0.5 * (x[b] - x[a])).astype(np.float32)
+        got = loc.search(q, everything, 20)
+        got_rows = [row_of[c.ref_id] for c in got]
+        want, _ = exact(x16, q, 20)
+        hits1 += got_rows[0] == want[0]
+        hits20 += len(set(got_rows) & set(want.tolist())) / 20
+        np.testing.assert_allclose([c.l2_sq for c in got], ((x16[got_rows] - q) ** 2).sum(1),
+                                   rtol=1e-5, atol=1e-6)
+        assert [c.l2_sq for c in got] == sorted(c.l2_sq for c in got)
+        assert all((c.lat, c.lon) == pytest.approx(tuple(pos[r].round(6)))
+                   for c, r in zip(got, got_rows))
+    assert hits1 / 20 >= 0.95 and hits20 / 20 >= 0.95
+
+
+def test_prefetch_rows_is_advice_only(tmp_path):
+    from vlm_vpr_ros.maps.store import prefetch_rows
+
+    arr = np.arange(4000, dtype=np.float32).reshape(1000, 4)
+    np.save(tmp_path / "a.npy", arr)
+    view = np.load(tmp_path / "a.npy", mmap_mode="r")
+    prefetch_rows(tmp_path / "a.npy", view, np.array([999, 0, 5, 5]))
+    np.testing.assert_array_equal(view[[0, 5, 999]], arr[[0, 5, 999]])
+    prefetch_rows(tmp_path / "gone.npy", view, np.array([1]))  # missing file: no error

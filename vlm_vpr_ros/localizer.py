@@ -29,7 +29,7 @@ from vlm_vpr_ros.fusion.calibration import load_calibration
 from vlm_vpr_ros.fusion.error_model import ErrorModel, load_error_models
 from vlm_vpr_ros.fusion.posterior import fuse
 from vlm_vpr_ros.geodesy import MAX_DISTANCE_KM, haversine_km
-from vlm_vpr_ros.map_io import ReferenceMap
+from vlm_vpr_ros.map_io import ReferenceMap, submap_radius_km
 from vlm_vpr_ros.partition import country_codes, nearest_centroids
 from vlm_vpr_ros.priors.base import Prior, PriorResult
 from vlm_vpr_ros.priors.simple import valid_latlon
@@ -96,12 +96,9 @@ class Localizer:
         self._submap_geometry()
 
     def _submap_geometry(self) -> None:
-        cents = self.map.centroids
         self._radius_km = np.zeros(len(self.map.submaps))
         for i, s in enumerate(self.map.submaps):
-            if s.count:
-                self._radius_km[i] = float(np.max(haversine_km(
-                    cents[i, 0], cents[i, 1], s.coords[:, 0], s.coords[:, 1])))
+            self._radius_km[i] = submap_radius_km(s)  # v2: from the manifest, no file read
         self._counts = np.array([s.count for s in self.map.submaps], dtype=np.float64)
         # a fixed sample of reference positions: the support of the posterior's miss component
         rng = np.random.default_rng(0)
@@ -109,8 +106,8 @@ class Localizer:
         pts, wts = [], []
         for s, k in zip(self.map.submaps, per.astype(int)):
             if s.count:
-                rows = rng.choice(s.count, size=min(k, s.count), replace=False)
-                pts.append(s.coords[rows])
+                rows = np.sort(rng.choice(s.count, size=min(k, s.count), replace=False))
+                pts.append(np.asarray(s.coords[rows]))  # v2: coords mapped, index not opened
                 wts.append(np.full(len(rows), s.count / len(rows)))
         self._background = ((np.concatenate(pts)[:, 0], np.concatenate(pts)[:, 1],
                              np.concatenate(wts)) if pts else None)
@@ -177,14 +174,7 @@ class Localizer:
         if q.shape[1] != self.map.dim:
             raise DescriptorError(f"query descriptor has dim {q.shape[1]}, the map has "
                                   f"{self.map.dim}")
-        found: list[tuple[float, int, int]] = []
-        for si in submaps:
-            kk = min(k, self.map.submaps[si].count)
-            if kk == 0:
-                continue
-            dist, idx = self.map.search_submap(si, q, kk)  # flat/fp16 exact; pq + re-rank
-            found += [(float(d), si, int(j)) for d, j in zip(dist, idx) if j >= 0]
-        found.sort(key=lambda t: (t[0], t[1], t[2]))
+        found = self.map.search_submaps(list(submaps), q, k)  # exact; pq: + re-rank
         out = []
         for d, si, j in found[:k]:
             sub = self.map.submaps[si]

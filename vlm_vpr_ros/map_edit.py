@@ -38,7 +38,8 @@ import numpy as np
 from vlm_vpr_ros.errors import DataError, ImageDecodeError, MapError
 from vlm_vpr_ros.geodesy import haversine_km, spherical_mean
 from vlm_vpr_ros.map_io import (MANIFEST, ReferenceMap, Submap, atomic_save_npy,
-                                atomic_write_index, atomic_write_json, sha256_file)
+                                atomic_write_index, atomic_write_json, sha256_file,
+                                submap_radius_km)
 
 log = logging.getLogger(__name__)
 
@@ -120,7 +121,8 @@ class _Transaction:
             kind = getattr(sub, "kind", "flat")
             rel = write_submap(self.path, f"{sub.id}.g{gen}", kind, sub.index, sub.coords,
                                list(sub.ids), getattr(sub, "rerank", None))
-            entry.update({"group": getattr(sub, "group", "") or sub.id, "kind": kind})
+            entry.update({"group": getattr(sub, "group", "") or sub.id, "kind": kind,
+                          "radius_km": round(submap_radius_km(sub), 4)})
             if getattr(sub, "recall", None):
                 entry["recall"] = sub.recall
         else:
@@ -243,10 +245,7 @@ def verify_images(map_dir: str | os.PathLike[str]) -> int:
 
 # -- where new references go ---------------------------------------------------------------------
 def _radius_km(sub: Submap) -> float:
-    if sub.count == 0:
-        return 0.0
-    return float(np.max(haversine_km(sub.centroid[0], sub.centroid[1], sub.coords[:, 0],
-                                     sub.coords[:, 1])))
+    return submap_radius_km(sub)
 
 
 def _next_kmeans_ids(existing: Iterable[str], n: int) -> list[str]:
@@ -354,7 +353,7 @@ def _rebuilt(ref_map: ReferenceMap, sub_id: str, vectors: np.ndarray, coords: np
         trained = _pq_codebook(ref_map) if kind == "pq" else None
         index = make_index(kind, vecs, trained)
         rerank = vecs.astype(np.float16) if kind == "pq" else None
-        factor = int(getattr(ref_map, "rerank_factor", 8))
+        factor = int(getattr(ref_map, "rerank_factor", 16))
         recall = measure_recall(index, kind, rerank, vecs, factor) if kind != "flat" else None
         return Submap(sub_id, centroid, coords, list(ids), index, kind=kind, rerank=rerank,
                       group=getattr(like, "group", "") if like is not None else "",

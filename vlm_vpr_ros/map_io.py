@@ -128,10 +128,42 @@ class Submap:
 
         return search(self.index, self.kind, self.rerank, q, k, factor)
 
+    def pq_candidates(self, q: np.ndarray, kk: int) -> tuple[np.ndarray, np.ndarray]:
+        from vlm_vpr_ros.maps.indexes import pq_candidates
+
+        return pq_candidates(self.index, q, kk)
+
+    def exact_sq_l2(self, rows: np.ndarray, q: np.ndarray) -> np.ndarray:
+        from vlm_vpr_ros.maps.indexes import exact_sq_l2
+
+        return exact_sq_l2(self.rerank, rows, q)
+
     def vectors(self) -> np.ndarray:
         from vlm_vpr_ros.maps.indexes import vectors
 
         return vectors(self.index, self.kind, self.rerank)
+
+
+def _prefetch(sub: Any, rows: np.ndarray, what: tuple[str, ...]) -> None:
+    """Read-ahead advice for a memory-mapped (v2) submap; in-memory submaps have nothing to
+    fetch."""
+    fetch = getattr(sub, "prefetch", None)
+    if fetch is not None:
+        fetch(rows, what)
+
+
+def submap_radius_km(sub: Any) -> float:
+    """Largest distance (km) from a submap's centroid to one of its references: stored in v2
+    manifests (so opening a map reads no coordinates), computed for older maps."""
+    stored = getattr(sub, "radius_km", None)
+    if stored is not None:
+        return float(stored)
+    if sub.count == 0:
+        return 0.0
+    from vlm_vpr_ros.geodesy import haversine_km
+
+    c = np.asarray(sub.coords)
+    return float(np.max(haversine_km(sub.centroid[0], sub.centroid[1], c[:, 0], c[:, 1])))
 
 
 class ReferenceMap:
@@ -147,8 +179,8 @@ class ReferenceMap:
         self._groups: dict[str, list[int]] = {}
         for i, s in enumerate(submaps):
             self._groups.setdefault(s.group or s.id, []).append(i)
-        #: pq submaps re-rank the top k·rerank_factor PQ candidates exactly (tunable at query time)
-        self.rerank_factor = int(manifest.get("index_params", {}).get("rerank_factor", 8))
+        #: pq submaps re-rank the top k·rerank_factor PQ candidates exactly (tunable per query)
+        self.rerank_factor = int(manifest.get("index_params", {}).get("rerank_factor", 16))
 
     # properties
     @property
@@ -182,6 +214,45 @@ class ReferenceMap:
     def search_submap(self, i: int, q: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
         """Top-``k`` (squared L2, row) in submap ``i`` for a (1, dim) float32 query."""
         return self.submaps[i].search(q, k, self.rerank_factor)
+
+    def search_submaps(self, submaps: list[int], q: np.ndarray,
+                       k: int) -> list[tuple[float, int, int]]:
+        """Top-``k`` (squared L2, submap, row) over several submaps, best first (ties by
+        submap, row). flat/fp16 submaps are searched exactly, one by one; pq submaps together,
+        as one pq index over their union would be: PQ candidates from each (serially: threads
+        measured slower, OpenMP teams contend), then only the best ``k·rerank_factor`` of them
+        all are re-ranked exactly (one re-rank per query, not one per submap)."""
+        found: list[tuple[float, int, int]] = []
+        live = [si for si in submaps if self.submaps[si].count > 0]
+        pq = [si for si in live if self.submaps[si].kind == "pq"] if len(live) > 1 else []
+        for si in live:
+            if si not in pq:
+                dist, idx = self.search_submap(si, q, min(k, self.submaps[si].count))
+                found += [(float(d), si, int(j)) for d, j in zip(dist, idx) if j >= 0]
+        if pq:
+            kk = k * max(1, self.rerank_factor)
+            stage1 = [self.submaps[si].pq_candidates(q, kk) for si in pq]
+            approx = np.concatenate([d for d, _ in stage1])
+            owner = np.concatenate([np.full(len(r), si) for si, (_, r) in zip(pq, stage1)])
+            rows = np.concatenate([r for _, r in stage1])
+            if len(approx) > kk:
+                best = np.argpartition(approx, kk - 1)[:kk]
+                owner, rows = owner[best], rows[best]
+            picked = [(si, np.sort(rows[owner == si])) for si in np.unique(owner).tolist()]
+            if len(picked) > 1:  # cold pages of many files: all reads queued at once (one
+                for si, r in picked:  # submap: measured no gain, only the advice's cost)
+                    _prefetch(self.submaps[si], r, ("vectors",))
+            for si, r in picked:
+                dist = self.submaps[si].exact_sq_l2(r, q)
+                found += [(float(d), si, int(j)) for d, j in zip(dist, r)]
+        found.sort()
+        found = found[:k]
+        by_sub: dict[int, list[int]] = {}
+        for _, si, j in found:  # the caller reads their ids and positions next
+            by_sub.setdefault(si, []).append(j)
+        for si, r in by_sub.items() if len(by_sub) > 1 else ():
+            _prefetch(self.submaps[si], np.sort(np.array(r)), ("coords", "ids"))
+        return found
 
     def all_descriptors(self) -> np.ndarray:
         """All descriptors (submap order): reconstructed from flat/fp16 indices, or the fp16

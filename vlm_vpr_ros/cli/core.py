@@ -50,8 +50,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--max-submap-size", type=int, default=None, metavar="N",
                    help="split submaps larger than N references into K-means sub-clusters "
                         "(bounds query time; default: no split)")
-    p.add_argument("--rerank-factor", type=int, default=8, metavar="F",
-                   help="pq: re-rank the top k*F PQ candidates exactly (default 8)")
+    p.add_argument("--rerank-factor", type=int, default=16, metavar="F",
+                   help="pq: re-rank the top k*F PQ candidates exactly (default 16)")
     p.add_argument("--overwrite", action="store_true", help="replace a different existing map")
     add_descriptor_option_args(p)
     add_engine_args(p)

@@ -62,12 +62,15 @@ def _mixture_radius(q: float, point_d_km: np.ndarray, point_w: np.ndarray, miss_
 
     if below + miss_mass * float(miss_cdf(np.array([hi]))[0]) < q and k == len(d_sorted):
         return hi
-    for _ in range(50):
-        mid = 0.5 * (lo + hi)
-        if below + miss_mass * float(miss_cdf(np.array([mid]))[0]) >= q:
-            hi = mid
-        else:
-            lo = mid
+    # vectorized bisection: each round evaluates 64 points of (lo, hi] at once; 4 rounds shrink
+    # the interval 64**4 = 1.7e7 times (50 scalar halvings cost 10x more per query)
+    for _ in range(4):
+        grid = lo + (hi - lo) * np.arange(1, 65) / 64.0
+        ok = below + miss_mass * np.asarray(miss_cdf(grid), dtype=np.float64) >= q
+        if not ok.any():
+            return hi
+        j = int(np.argmax(ok))
+        lo, hi = (float(grid[j - 1]) if j else lo), float(grid[j])
     return hi
 
 

@@ -22,10 +22,12 @@ from typing import Any, Mapping
 import numpy as np
 
 from vlm_vpr_ros.errors import DataError, MapError
+from vlm_vpr_ros.geodesy import haversine_km
 from vlm_vpr_ros.maps import indexes
 from vlm_vpr_ros.maps.balance import split_large
 from vlm_vpr_ros.maps.sources import CHUNK, DescriptorSource, descriptor_identity, open_source
-from vlm_vpr_ros.maps.store import VERSION, encode_ids, file_table, pq_name, write_submap
+from vlm_vpr_ros.maps.store import VERSION, encode_ids, file_table, pq_name, prefetch_rows, \
+    write_submap
 from vlm_vpr_ros.outputs import StagedOutput
 
 log = logging.getLogger(__name__)
@@ -98,6 +100,8 @@ class _Rows:
 
     def __getitem__(self, idx) -> np.ndarray:
         a = np.load(self.path, mmap_mode="r")
+        if isinstance(idx, np.ndarray) and idx.dtype.kind in "iu" and len(idx) > 64:
+            prefetch_rows(self.path, a, idx)  # scattered rows: queue all reads at once
         try:
             return np.array(a[idx], dtype=np.float32)
         finally:
@@ -182,6 +186,47 @@ def _scan(desc: _Rows, ok: np.ndarray, file_rows: list[str], progress: bool):
     return bad
 
 
+def _by_submap(desc: _Rows, src_rows: np.ndarray, work: Path, progress: bool) -> _Rows:
+    """The descriptors of ``src_rows`` (CSV rows in submap order) copied into one scratch
+    file in that order, in a single sequential pass, so that every submap is then one
+    contiguous read. Gathering a submap's rows straight from the input reads them one by one
+    from all over the file: on this machine a cold row costs 0.8 ms (4.1M rows: ~55 min),
+    while sequential reads run at ~500 MB/s."""
+    path, marker = work / "by_submap.npy", work / "by_submap.json"
+    n, dim = len(src_rows), desc.shape[1]
+    if marker.exists() and path.exists():
+        log.info("resuming: descriptors already in submap order")
+        return _Rows(path)
+    arr = np.lib.format.open_memmap(path, mode="w+", dtype=np.float32, shape=(n, dim))
+    del arr
+    row_bytes = dim * 4
+    start = path.stat().st_size - n * row_bytes
+    dest = np.full(len(desc), -1, dtype=np.int64)  # position of each CSV row in the file
+    dest[src_rows] = np.arange(n)
+    bar = _progress(len(desc), "sort", progress)
+    fd = os.open(path, os.O_WRONLY)
+    try:
+        for s in range(0, len(desc), CHUNK):
+            e = min(len(desc), s + CHUNK)
+            d = dest[s:e]
+            sel = np.flatnonzero(d >= 0)
+            if len(sel):
+                sel = sel[np.argsort(d[sel], kind="stable")]
+                block = np.ascontiguousarray(desc[s:e][sel], dtype=np.float32)
+                pos = d[sel]
+                # runs of consecutive destinations (one per submap present in the chunk)
+                cuts = np.flatnonzero(np.diff(pos) != 1) + 1
+                for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(pos)]):
+                    os.pwrite(fd, block[a:b].tobytes(), start + int(pos[a]) * row_bytes)
+            bar.update(e - s)
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+    bar.close()
+    marker.write_text("{}")
+    return _Rows(path)
+
+
 def build_from_descriptors(source_path: str | Path, coords_csv: str | Path,
                            out_dir: str | Path, descriptor: str,
                            descriptor_config: Mapping[str, Any] | None = None,
@@ -252,6 +297,7 @@ def _build_into(staged: Any, source: DescriptorSource, identity: dict, state: di
     counts = np.diff(bounds).tolist()
     kinds = plan_kinds(index, counts, source.dim, ram_budget_mb)
     trained = _pq_codebook(desc, keep, kinds, work, seed)
+    sorted_desc = _by_submap(desc, keep[order], work, progress)
     stage = work / "map"
     subs_dir = work / "subs"
     subs_dir.mkdir(exist_ok=True)
@@ -264,7 +310,7 @@ def _build_into(staged: Any, source: DescriptorSource, identity: dict, state: di
             bar.update(counts[k])
             continue
         rows_k = keep[order[bounds[k]:bounds[k + 1]]]  # ascending CSV rows
-        vecs = np.asarray(desc[rows_k], dtype=np.float32)
+        vecs = sorted_desc[bounds[k]:bounds[k + 1]]  # the same rows: one contiguous read
         kind = kinds[k]
         fi = indexes.make_index(kind, vecs, trained)
         rerank = vecs.astype(np.float16) if kind == "pq" else None
@@ -274,6 +320,9 @@ def _build_into(staged: Any, source: DescriptorSource, identity: dict, state: di
                              encode_ids([file_rows[i] for i in rows_k]), rerank)
         entry = {"id": name, "group": groups[k], "count": int(len(rows_k)),
                  "centroid": [round(float(c), 7) for c in part.centroids[k]], "kind": kind,
+                 "radius_km": round(float(np.max(haversine_km(
+                     part.centroids[k][0], part.centroids[k][1], coords[rows_k, 0],
+                     coords[rows_k, 1]))) if len(rows_k) else 0.0, 4),
                  "files": files, "file_table": file_table(stage, list(files.values()))}
         if recall:
             entry["recall"] = recall

@@ -13,6 +13,7 @@ One PQ codebook is trained per map on a sample of all references and shared by e
 
 from __future__ import annotations
 
+import functools
 import logging
 from typing import Any
 
@@ -25,7 +26,7 @@ log = logging.getLogger(__name__)
 
 INDEX_KINDS = ("flat", "fp16", "pq", "auto")
 SUBMAP_KINDS = ("flat", "fp16", "pq")
-DEFAULT_RERANK_FACTOR = 8
+DEFAULT_RERANK_FACTOR = 16  # 8 measured 96-99 % recall@50 on dense clustered data, 16: >= 99 %
 #: a pq submap smaller than this is stored fp16 instead (a scan is already cheap there)
 PQ_MIN_REFS = 1024
 PQ_TRAIN_SAMPLE = 32768
@@ -137,14 +138,40 @@ def search(index: Any, kind: str, rerank: np.ndarray | None, q: np.ndarray, k: i
         dist, idx = index.search(q, k)
         keep = idx[0] >= 0
         return dist[0][keep], idx[0][keep]
-    kk = min(n, k * max(1, int(factor)))
-    _, idx = index.search(q, kk)
-    rows = np.sort(idx[0][idx[0] >= 0])
-    vecs = np.asarray(rerank[rows], dtype=np.float32)
-    diff = vecs - q
-    dist = np.einsum("ij,ij->i", diff, diff)
+    rows = np.sort(pq_candidates(index, q, k * max(1, int(factor)))[1])
+    dist = exact_sq_l2(rerank, rows, q)
     order = np.argsort(dist, kind="stable")[:k]
     return dist[order], rows[order]
+
+
+def pq_candidates(index: Any, q: np.ndarray, kk: int) -> tuple[np.ndarray, np.ndarray]:
+    """Stage 1 of a pq search: the ``kk`` best rows by PQ-approximate distance (approximate
+    distances of submaps that share the map's codebook are comparable across submaps)."""
+    kk = min(int(kk), index.ntotal)
+    if kk <= 0:
+        return np.zeros(0, np.float32), np.zeros(0, np.int64)
+    dist, idx = index.search(q, kk)
+    keep = idx[0] >= 0
+    return dist[0][keep], idx[0][keep]
+
+
+def exact_sq_l2(rerank: np.ndarray, rows: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Stage 2: exact squared L2 of ``q`` to the fp16 re-rank vectors of ``rows`` (ascending
+    rows read the memory-mapped file in order). FAISS's SIMD fp16 decoder and one in-place
+    difference: numpy's fp16 cast and fresh temporaries cost 4x more per query."""
+    half = np.ascontiguousarray(rerank[rows])
+    if not len(half):
+        return np.zeros(0, np.float32)
+    vecs = _fp16_codec(half.shape[1]).decode(half.view(np.uint8))
+    vecs -= q
+    return np.einsum("ij,ij->i", vecs, vecs)
+
+
+@functools.lru_cache(maxsize=8)
+def _fp16_codec(dim: int) -> Any:
+    import faiss
+
+    return faiss.ScalarQuantizer(dim, faiss.ScalarQuantizer.QT_fp16)
 
 
 def vectors(index: Any, kind: str, rerank: np.ndarray | None) -> np.ndarray:
@@ -170,10 +197,13 @@ def measure_recall(index: Any, kind: str, rerank: np.ndarray | None, vecs: np.nd
               / np.maximum(np.linalg.norm(noise, axis=1), 1e-12))[:, None]
     qs = (vecs[a] + noise).astype(np.float32)
     k = min(50, n)
-    r1 = r50 = 0.0
     norms = np.einsum("ij,ij->i", vecs, vecs)
-    for q in qs:
-        exact = np.argsort(norms - 2.0 * vecs @ q, kind="stable")[:k]
+    scores = norms[:, None] - 2.0 * (vecs @ qs.T)  # (n, queries): one BLAS call for all
+    r1 = r50 = 0.0
+    for j, q in enumerate(qs):
+        col = scores[:, j]
+        part = np.argpartition(col, k - 1)[:k] if k < n else np.arange(n)
+        exact = part[np.lexsort((part, col[part]))]  # by distance, ties by row (stable)
         _, got = search(index, kind, rerank, q[None, :], k, factor)
         r1 += float(len(got) > 0 and got[0] == exact[0])
         r50 += len(set(got.tolist()) & set(exact.tolist())) / k

@@ -117,7 +117,7 @@ def save_map(ref_map: Any, path: Path) -> dict:
     """Write an in-memory :class:`ReferenceMap` as a v2 folder; returns the manifest."""
     from vlm_vpr_ros import __version__
     from vlm_vpr_ros.map_io import MANIFEST, MAP_FORMAT, METRIC, atomic_save_npz, \
-        atomic_write_json
+        atomic_write_json, submap_radius_km
 
     path.mkdir(parents=True, exist_ok=True)
     rels: list[str] = []
@@ -131,7 +131,7 @@ def save_map(ref_map: Any, path: Path) -> dict:
         rels += list(files.values())
         entry = {"id": s.id, "group": s.group or s.id, "count": s.count,
                  "centroid": [round(float(c), 7) for c in s.centroid], "kind": s.kind,
-                 "files": files}
+                 "radius_km": round(submap_radius_km(s), 4), "files": files}
         if getattr(s, "recall", None):
             entry["recall"] = s.recall
         subs.append(entry)
@@ -185,11 +185,15 @@ class LazySubmap:
         self.centroid = tuple(float(c) for c in entry["centroid"])
         self.kind: str = entry["kind"]
         self.recall: dict | None = entry.get("recall")
+        #: max distance centroid -> reference (km); None for maps written before it was stored
+        self.radius_km: float | None = (float(entry["radius_km"]) if entry.get("radius_km")
+                                        is not None else None)
         self.files: dict[str, str] = dict(entry["files"])
         self._sizes = {rel: int(files_meta[rel]["bytes"]) for rel in self.files.values()}
         self._inodes: dict[str, tuple[int, int]] = {}
         self._lock = threading.Lock()
         self._open: tuple[Any, np.ndarray, IdView, np.ndarray | None] | None = None
+        self._coords: np.ndarray | None = None  # mapped without opening the index
 
     # -- size guard (prevents SIGBUS on truncated mapped files) --------------------------------
     def check_files(self) -> None:
@@ -231,9 +235,7 @@ class LazySubmap:
         if index.ntotal != self.count:
             raise MapError(f"{root}: submap {sid} index holds {index.ntotal} vectors, manifest "
                            f"says {self.count}")
-        coords = _load_array(root, self.files["coords"], (self.count, 2), "f8")
-        if self.count and not np.all(np.isfinite(coords[: min(self.count, 4096)])):
-            raise MapError(f"{root}: submap {sid} coordinates are not finite")
+        coords = self._map_coords()
         raw = _load_array(root, self.files["ids"], (self.count,), "S")
         _check_ids(root, self.files["ids"], raw)
         rerank = None
@@ -259,9 +261,22 @@ class LazySubmap:
     def index(self) -> Any:
         return self.opened()[0]
 
+    def _map_coords(self) -> np.ndarray:
+        if self._coords is None:
+            coords = _load_array(self.root, self.files["coords"], (self.count, 2), "f8")
+            if self.count and not np.all(np.isfinite(coords[: min(self.count, 4096)])):
+                raise MapError(f"{self.root}: submap {self.id} coordinates are not finite")
+            self._coords = coords
+        return self._coords
+
     @property
     def coords(self) -> np.ndarray:
-        return self.opened()[1]
+        """Reference positions, memory-mapped on their own: reading them (the posterior's
+        background sample, ``map info``) does not open the index."""
+        if self._open is not None:
+            return self._open[1]
+        self.check_files()
+        return self._map_coords()
 
     @property
     def ids(self) -> IdView:
@@ -276,6 +291,24 @@ class LazySubmap:
         self.check_files()
         return indexes.search(index, self.kind, rerank, q, k, factor)
 
+    def pq_candidates(self, q: np.ndarray, kk: int) -> tuple[np.ndarray, np.ndarray]:
+        index = self.opened()[0]
+        self.check_files()
+        return indexes.pq_candidates(index, q, kk)
+
+    def exact_sq_l2(self, rows: np.ndarray, q: np.ndarray) -> np.ndarray:
+        return indexes.exact_sq_l2(self.opened()[3], rows, q)
+
+    def prefetch(self, rows: np.ndarray, what: tuple[str, ...] = ("vectors",)) -> None:
+        """Start reading these rows of the memory-mapped files in ``what`` (roles: vectors,
+        coords, ids) in the background; the next access then finds them in the page cache."""
+        opened = self.opened()
+        arrays = {"coords": opened[1], "ids": opened[2]._raw, "vectors": opened[3]}
+        for role in what:
+            rel = self.files.get(role)
+            if rel is not None and arrays.get(role) is not None:
+                prefetch_rows(self.root / rel, arrays[role], rows)
+
     def vectors(self) -> np.ndarray:
         index, _, _, rerank = self.opened()
         self.check_files()
@@ -283,6 +316,7 @@ class LazySubmap:
 
 
 def _load_array(root: Path, rel: str, shape: tuple[int, ...], kind: str) -> np.ndarray:
+    """A memory-mapped ``.npy`` of the expected shape and dtype kind."""
     try:
         arr = np.load(root / rel, mmap_mode="r", allow_pickle=False)
     except (OSError, ValueError) as exc:
@@ -299,6 +333,28 @@ def _load_array(root: Path, rel: str, shape: tuple[int, ...], kind: str) -> np.n
     if not ok:
         raise MapError(f"{root}: {rel} is {arr.dtype}{arr.shape}, expected {kind}{shape}")
     return arr
+
+
+def prefetch_rows(path: Path, arr: np.ndarray, rows: np.ndarray) -> None:
+    """Ask the kernel to read ``arr[rows]`` of the memory-mapped ``.npy`` at ``path`` now
+    (``posix_fadvise(WILLNEED)`` per row queues the reads without waiting): a cold query then
+    waits for about one round of disk reads, not one read per page fault in turn (measured
+    here: 0.06 ms instead of 0.8 ms per cold row)."""
+    if not len(rows) or not hasattr(os, "posix_fadvise"):
+        return
+    row_bytes = arr.strides[0]
+    try:
+        fd = os.open(path, os.O_RDONLY)
+        start = os.fstat(fd).st_size - arr.nbytes  # .npy data runs from the header to the end
+    except OSError:
+        return  # advice only: the search itself reports a missing file
+    try:
+        for r in np.unique(np.asarray(rows, dtype=np.int64)).tolist():
+            os.posix_fadvise(fd, start + r * row_bytes, row_bytes, os.POSIX_FADV_WILLNEED)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
 
 
 def validate_entries(path: Path, manifest: dict) -> None:
