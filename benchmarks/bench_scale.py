@@ -128,16 +128,34 @@ def make_data(work: Path, n: int, dim: int, n_queries: int, seed: int = 0) -> di
 
 # -- child processes ---------------------------------------------------------------------------
 def run_measured(cmd: list[str]) -> tuple[float, float, str]:
-    """(wall s, peak RSS GiB of the child, its stdout) via os.wait4."""
+    """(wall s, peak RSS GiB of the child, its stdout). The peak is the child's own VmHWM,
+    printed by it at exit: ``ru_maxrss`` from ``wait4`` would include this parent's RSS (Linux
+    keeps the pre-exec high-water mark; after writing the data, that is the 8.4 GB file)."""
+    wrapped = [sys.executable, "-c", HWM_WRAPPER] + cmd[1:]  # cmd = python -m MODULE ...
     t0 = time.perf_counter()
-    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True)
-    out = p.stdout.read()
-    _, status, ru = os.wait4(p.pid, 0)
-    p.returncode = os.waitstatus_to_exitcode(status)
+    p = subprocess.run(wrapped, stdout=subprocess.PIPE, text=True)
     wall = time.perf_counter() - t0
     if p.returncode != 0:
         raise SystemExit(f"failed ({p.returncode}): {' '.join(cmd)}")
-    return wall, ru.ru_maxrss / 2 ** 20, out
+    hwm = [line for line in p.stdout.splitlines() if line.startswith("VMHWM_KB ")]
+    return wall, int(hwm[-1].split()[1]) / 2 ** 20, p.stdout
+
+
+#: ``python -c HWM_WRAPPER -m MODULE ARGS...`` runs the module, then prints its VmHWM
+HWM_WRAPPER = """
+import runpy, sys
+mod = sys.argv[2]
+sys.argv = [mod] + sys.argv[3:]
+code = 0
+try:
+    runpy.run_module(mod, run_name="__main__", alter_sys=True)
+except SystemExit as exc:
+    code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+with open("/proc/self/status") as fh:
+    hwm = [line.split()[1] for line in fh if line.startswith("VmHWM")][0]
+print("VMHWM_KB", hwm, flush=True)
+sys.exit(code)
+"""
 
 
 def status_mib() -> dict:
@@ -196,7 +214,7 @@ def child(map_dir: str, work: str, n_loop: int, n_global: int) -> None:
     timed(loc3, range(50), lambda i: priors[i % nq])
     three = timed(loc3, range(300), lambda i: priors[i % nq])
     post = Localizer(m, LocalizerConfig(top_p=50))
-    region = [len(post.select_submaps(priors[i].prior)[0]) for i in range(100)]
+    region = [len(post.select_submaps(priors[i % nq].prior)[0]) for i in range(100)]
     timed(post, range(20), lambda i: priors[i % nq])
     posterior = timed(post, range(100), lambda i: priors[i % nq])
     timed(loc, range(3), lambda i: None)
@@ -289,9 +307,9 @@ def report(results: dict, n: int) -> None:
     print(f"\n{n:,} references, {r0['n_submaps']} submaps; largest {r0['largest'][0]} "
           f"({r0['largest'][1]:,} refs); latency = localize() top-50 + re-rank, warm, paper "
           f"fusion unless noted")
-    print(f"{'':44}" + "".join(f"{k:>16}" for k in kinds))
+    print(f"{'':44}" + "".join(f"{k:>18}" for k in kinds))
     for name, fn in rows:
-        print(f"{name:44}" + "".join(f"{fn(results[k]):>16}" for k in kinds))
+        print(f"{name:44}" + "".join(f"{fn(results[k]):>18}" for k in kinds))
     med = statistics.median
     for base in ("flat", "fp16"):
         if "pq" in results and base in results:

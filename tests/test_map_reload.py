@@ -9,10 +9,12 @@ import os
 import shutil
 import threading
 import time
+from pathlib import Path
 
 import pytest
 
 from node_harness import domain_id, image_msg, node_and_client
+from vlm_vpr_ros.errors import MapError
 from vlm_vpr_ros.geodesy import haversine_km
 from vlm_vpr_ros.imageio import load_image
 from vlm_vpr_ros.map_edit import add_references
@@ -45,7 +47,9 @@ def test_runtime_swaps_the_map_between_queries(half, demo_data, tmp_path):
         with lock:
             outcomes.append(o)
 
-    rt = QueryRuntime(LocalizationPipeline.open(map_dir), create_prior_provider("none", {}),
+    # verify=True (node parameter verify_map): a reload then re-checks every sha256 as well
+    rt = QueryRuntime(LocalizationPipeline.open(map_dir, verify=True),
+                      create_prior_provider("none", {}),
                       RuntimeConfig(min_period_s=0.0), decode=lambda m: m, on_outcome=collect)
     stop = threading.Event()
 
@@ -139,3 +143,33 @@ def test_node_map_reload_service(half, demo_data, tmp_path):
         assert all(m.header.stamp.sec * 10**9 + m.header.stamp.nanosec in sent
                    for m, _ in client.fixes)
         assert node.alive()
+
+
+def test_reload_checks_as_much_as_the_start_did(half, tmp_path, monkeypatch):
+    """Opened without verify_map (the default), a reload hashes no index, coordinate or id file
+    (a 4.1M map is 4.5 GB; only the small calibration.json is always checked) but still
+    refuses a file whose size no longer matches the manifest."""
+    import vlm_vpr_ros.map_io as map_io
+
+    _, src = half
+    map_dir = tmp_path / "map"
+    shutil.copytree(src, map_dir)
+    pipe = LocalizationPipeline.open(map_dir)
+    assert not pipe.verify and LocalizationPipeline.open(map_dir, verify=True).verify
+    hashed, real = [], map_io.sha256_file
+
+    def spy(path):
+        hashed.append(Path(path).name)
+        return real(path)
+
+    monkeypatch.setattr(map_io, "sha256_file", spy)
+    new = pipe.reloaded()
+    assert new.map.n_references == pipe.map.n_references and not new.verify
+    assert set(hashed) <= {"calibration.json"}, hashed
+    pipe.reloaded(verify=True)
+    assert any(h.endswith(".faiss") for h in hashed)  # the opt-in full pass
+    man = json.loads((map_dir / "manifest.json").read_text())
+    coords = map_dir / man["submaps"][0]["files"]["coords"]
+    coords.write_bytes(coords.read_bytes()[:-16])
+    with pytest.raises(MapError, match="bytes, manifest says"):
+        pipe.reloaded()

@@ -515,12 +515,24 @@ def test_localizer_start_opens_no_submap_and_many_pq_submaps_merge_like_one_inde
     assert hits1 / 20 >= 0.95 and hits20 / 20 >= 0.95
 
 
-def test_prefetch_rows_is_advice_only(tmp_path):
-    from vlm_vpr_ros.maps.store import prefetch_rows
+def test_prefetch_rows_is_advice_only_and_scattered_rows_are_read_exactly(tmp_path):
+    from vlm_vpr_ros.maps.store import npy_data_offset, prefetch_rows
 
     arr = np.arange(4000, dtype=np.float32).reshape(1000, 4)
     np.save(tmp_path / "a.npy", arr)
     view = np.load(tmp_path / "a.npy", mmap_mode="r")
-    prefetch_rows(tmp_path / "a.npy", view, np.array([999, 0, 5, 5]))
+    prefetch_rows(tmp_path / "a.npy", 16, np.array([999, 0, 5, 5]),
+                  npy_data_offset(tmp_path / "a.npy", view))
     np.testing.assert_array_equal(view[[0, 5, 999]], arr[[0, 5, 999]])
-    prefetch_rows(tmp_path / "gone.npy", view, np.array([1]))  # missing file: no error
+    prefetch_rows(tmp_path / "gone.npy", 16, np.array([1]), 128)  # missing file: no error
+    # the build's scattered-row reader (pread): same rows as numpy, any order and repeats,
+    # float16 input converted; out-of-range rows are an error
+    half = np.random.default_rng(0).normal(size=(300, 8)).astype(np.float16)
+    np.save(tmp_path / "h.npy", half)
+    rows = np.array([299, 0, 7, 7, 150])
+    for name, want in (("a.npy", arr), ("h.npy", half)):
+        got = mbuild._Rows(tmp_path / name)[rows]
+        assert got.dtype == np.float32
+        np.testing.assert_array_equal(got, want[rows].astype(np.float32))
+    with pytest.raises(IndexError):
+        mbuild._Rows(tmp_path / "a.npy")[np.array([1000])]

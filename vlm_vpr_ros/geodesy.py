@@ -25,6 +25,13 @@ def haversine_km(lat1, lon1, lat2, lon2) -> np.ndarray | float:
     return float(d) if d.ndim == 0 else d
 
 
+def farthest_km(lat: float, lon: float, coords: np.ndarray) -> float:
+    """Great-circle distance (km) from (lat, lon) to the farthest of ``coords`` ((n, 2) lat,
+    lon); 0 when there are none (a submap's radius around its centroid)."""
+    c = np.asarray(coords, dtype=np.float64).reshape(-1, 2)
+    return float(np.max(haversine_km(lat, lon, c[:, 0], c[:, 1]))) if len(c) else 0.0
+
+
 def latlon_to_unit(lat, lon) -> np.ndarray:
     """(N, 3) unit vectors on the sphere for degrees lat/lon (for seam-free clustering)."""
     lat = np.radians(np.asarray(lat, dtype=np.float64))

@@ -244,10 +244,6 @@ def verify_images(map_dir: str | os.PathLike[str]) -> int:
 
 
 # -- where new references go ---------------------------------------------------------------------
-def _radius_km(sub: Submap) -> float:
-    return submap_radius_km(sub)
-
-
 def _next_kmeans_ids(existing: Iterable[str], n: int) -> list[str]:
     nums = [int(s[1:]) for s in existing if s[:1] == "k" and s[1:].isdigit()]
     start = max(nums, default=-1) + 1
@@ -267,7 +263,7 @@ def assign_submaps(ref_map: ReferenceMap, coords: np.ndarray, seed: int = 0) -> 
     if method != "kmeans":
         raise MapError(f"cannot add to a map partitioned by {method!r}")
     cents = ref_map.centroids
-    radius = np.array([max(FIT_SLACK * _radius_km(s), FIT_FLOOR_M / 1000.0)
+    radius = np.array([max(FIT_SLACK * submap_radius_km(s), FIT_FLOOR_M / 1000.0)
                        for s in ref_map.submaps])
     out: list[str | None] = []
     for a, b in zip(lat, lon):

@@ -24,6 +24,7 @@ import hashlib
 import json
 import logging
 import os
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
@@ -138,18 +139,13 @@ class Submap:
 
         return exact_sq_l2(self.rerank, rows, q)
 
+    def prefetch(self, rows: np.ndarray, what: tuple[str, ...]) -> None:
+        """In memory: nothing to read ahead (see ``LazySubmap.prefetch``)."""
+
     def vectors(self) -> np.ndarray:
         from vlm_vpr_ros.maps.indexes import vectors
 
         return vectors(self.index, self.kind, self.rerank)
-
-
-def _prefetch(sub: Any, rows: np.ndarray, what: tuple[str, ...]) -> None:
-    """Read-ahead advice for a memory-mapped (v2) submap; in-memory submaps have nothing to
-    fetch."""
-    fetch = getattr(sub, "prefetch", None)
-    if fetch is not None:
-        fetch(rows, what)
 
 
 def submap_radius_km(sub: Any) -> float:
@@ -158,12 +154,9 @@ def submap_radius_km(sub: Any) -> float:
     stored = getattr(sub, "radius_km", None)
     if stored is not None:
         return float(stored)
-    if sub.count == 0:
-        return 0.0
-    from vlm_vpr_ros.geodesy import haversine_km
+    from vlm_vpr_ros.geodesy import farthest_km
 
-    c = np.asarray(sub.coords)
-    return float(np.max(haversine_km(sub.centroid[0], sub.centroid[1], c[:, 0], c[:, 1])))
+    return farthest_km(sub.centroid[0], sub.centroid[1], sub.coords) if sub.count else 0.0
 
 
 class ReferenceMap:
@@ -215,6 +208,19 @@ class ReferenceMap:
         """Top-``k`` (squared L2, row) in submap ``i`` for a (1, dim) float32 query."""
         return self.submaps[i].search(q, k, self.rerank_factor)
 
+    def open_submaps(self) -> "ReferenceMap":
+        """Open and check every submap now (v2 maps open them lazily, on first search). Batch
+        tools call this so a damaged map fails before the first query, naming the file; the
+        node does not (it starts in about a second at 4.1M references and reports a damaged
+        submap on the queries that reach it)."""
+        t0 = time.perf_counter()
+        for s in self.submaps:
+            opened = getattr(s, "opened", None)
+            if opened is not None:
+                opened()
+        log.debug("opened %d submaps in %.2f s", len(self.submaps), time.perf_counter() - t0)
+        return self
+
     def search_submaps(self, submaps: list[int], q: np.ndarray,
                        k: int) -> list[tuple[float, int, int]]:
         """Top-``k`` (squared L2, submap, row) over several submaps, best first (ties by
@@ -241,7 +247,7 @@ class ReferenceMap:
             picked = [(si, np.sort(rows[owner == si])) for si in np.unique(owner).tolist()]
             if len(picked) > 1:  # cold pages of many files: all reads queued at once (one
                 for si, r in picked:  # submap: measured no gain, only the advice's cost)
-                    _prefetch(self.submaps[si], r, ("vectors",))
+                    self.submaps[si].prefetch(r, ("vectors",))
             for si, r in picked:
                 dist = self.submaps[si].exact_sq_l2(r, q)
                 found += [(float(d), si, int(j)) for d, j in zip(dist, r)]
@@ -251,7 +257,7 @@ class ReferenceMap:
         for _, si, j in found:  # the caller reads their ids and positions next
             by_sub.setdefault(si, []).append(j)
         for si, r in by_sub.items() if len(by_sub) > 1 else ():
-            _prefetch(self.submaps[si], np.sort(np.array(r)), ("coords", "ids"))
+            self.submaps[si].prefetch(np.sort(np.array(r)), ("coords", "ids"))
         return found
 
     def all_descriptors(self) -> np.ndarray:

@@ -211,6 +211,7 @@ def cmd_evaluate_bag(args: argparse.Namespace) -> int:
     check_target(out, "evaluation", args.overwrite)
     pipe = LocalizationPipeline.open(args.map, localizer=localizer_config(args),
                                      descriptor_config=descriptor_options(args))
+    pipe.map.open_submaps()  # a damaged map: exit 2 before the first frame
     cfg = BagEvalConfig(image_topic=args.image_topic, gt_topic=args.gt_topic,
                         max_gt_gap_s=args.max_gt_gap, max_frames=args.max_frames,
                         prior_timeout_s=args.prior_timeout)
@@ -251,6 +252,7 @@ def cmd_ablate(args: argparse.Namespace) -> int:
             from None
     choose(args.metric, {f"{t:g}km": 1 for t in (1, 25, 200, 750, 2500)}, "metric")
     pipe = LocalizationPipeline.open(args.map, descriptor_config=descriptor_options(args))
+    pipe.map.open_submaps()
     provider = make_prior_provider(args)
     try:
         desc, truth, priors = ablation_inputs(args, pipe, provider)

@@ -237,6 +237,7 @@ def cmd_localize(args: argparse.Namespace) -> int:
     pipe = LocalizationPipeline.open(args.map, descriptor=args.descriptor,
                                      localizer=localizer_config(args),
                                      descriptor_config=descriptor_options(args))
+    pipe.map.open_submaps()  # a damaged map: exit 2 before the first query
     finished = {r["file"] for r in done}
     todo = [f for f in files if f not in finished]
     provider = make_prior_provider(args)
@@ -277,7 +278,7 @@ def _localize_descriptors(args: argparse.Namespace, files: list[str]) -> int:
     from vlm_vpr_ros.map_io import ReferenceMap
     from vlm_vpr_ros.maps.query import localize_descriptors, open_query_descriptors
 
-    ref_map = ReferenceMap.load(args.map)
+    ref_map = ReferenceMap.load(args.map).open_submaps()
     if args.descriptor and args.descriptor != ref_map.descriptor_identity["name"]:
         raise MapError(f"the map at {args.map} was built with descriptor "
                        f"{ref_map.descriptor_identity['name']!r}, but {args.descriptor!r} was "

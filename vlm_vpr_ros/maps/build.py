@@ -22,7 +22,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from vlm_vpr_ros.errors import DataError, MapError
-from vlm_vpr_ros.geodesy import haversine_km
+from vlm_vpr_ros.geodesy import farthest_km
 from vlm_vpr_ros.maps import indexes
 from vlm_vpr_ros.maps.balance import split_large
 from vlm_vpr_ros.maps.sources import CHUNK, DescriptorSource, descriptor_identity, open_source
@@ -99,13 +99,31 @@ class _Rows:
         return self.shape[0]
 
     def __getitem__(self, idx) -> np.ndarray:
+        if isinstance(idx, np.ndarray) and idx.dtype.kind in "iu":
+            return self._gather(idx)
         a = np.load(self.path, mmap_mode="r")
-        if isinstance(idx, np.ndarray) and idx.dtype.kind in "iu" and len(idx) > 64:
-            prefetch_rows(self.path, a, idx)  # scattered rows: queue all reads at once
         try:
             return np.array(a[idx], dtype=np.float32)
         finally:
             del a
+
+    def _gather(self, rows: np.ndarray) -> np.ndarray:
+        """Scattered rows by ``pread``, all reads queued first (``posix_fadvise``). Through
+        the mapping, every row's page fault would map ~64 KB of neighbours (fault-around) into
+        this process's RSS: 32k sampled rows of the 4.1M-row file measured 2.9 GB."""
+        a = np.load(self.path, mmap_mode="r")
+        offset, row_bytes, dtype, n, dim = a.offset, a.strides[0], a.dtype, *a.shape
+        del a
+        rows = np.asarray(rows, dtype=np.int64)
+        if len(rows) and (rows.min() < 0 or rows.max() >= n):
+            raise IndexError(f"{self.path}: row out of range [0, {n})")
+        out = np.empty((len(rows), dim), dtype=dtype)
+        prefetch_rows(self.path, row_bytes, rows, offset)
+        with open(self.path, "rb", buffering=0) as fh:
+            for i, r in enumerate(rows.tolist()):
+                out[i] = np.frombuffer(os.pread(fh.fileno(), row_bytes, offset + r * row_bytes),
+                                       dtype)
+        return out.astype(np.float32, copy=False)
 
 
 def _stage(source: DescriptorSource, file_rows: list[str], work: Path,
@@ -320,9 +338,7 @@ def _build_into(staged: Any, source: DescriptorSource, identity: dict, state: di
                              encode_ids([file_rows[i] for i in rows_k]), rerank)
         entry = {"id": name, "group": groups[k], "count": int(len(rows_k)),
                  "centroid": [round(float(c), 7) for c in part.centroids[k]], "kind": kind,
-                 "radius_km": round(float(np.max(haversine_km(
-                     part.centroids[k][0], part.centroids[k][1], coords[rows_k, 0],
-                     coords[rows_k, 1]))) if len(rows_k) else 0.0, 4),
+                 "radius_km": round(farthest_km(*part.centroids[k], coords[rows_k]), 4),
                  "files": files, "file_table": file_table(stage, list(files.values()))}
         if recall:
             entry["recall"] = recall

@@ -306,8 +306,14 @@ class LazySubmap:
         arrays = {"coords": opened[1], "ids": opened[2]._raw, "vectors": opened[3]}
         for role in what:
             rel = self.files.get(role)
-            if rel is not None and arrays.get(role) is not None:
-                prefetch_rows(self.root / rel, arrays[role], rows)
+            arr = arrays.get(role)
+            if rel is not None and arr is not None:
+                path = self.root / rel
+                try:
+                    offset = npy_data_offset(path, arr)
+                except OSError:
+                    continue  # the search reports a missing file
+                prefetch_rows(path, arr.strides[0], rows, offset)
 
     def vectors(self) -> np.ndarray:
         index, _, _, rerank = self.opened()
@@ -335,26 +341,30 @@ def _load_array(root: Path, rel: str, shape: tuple[int, ...], kind: str) -> np.n
     return arr
 
 
-def prefetch_rows(path: Path, arr: np.ndarray, rows: np.ndarray) -> None:
-    """Ask the kernel to read ``arr[rows]`` of the memory-mapped ``.npy`` at ``path`` now
-    (``posix_fadvise(WILLNEED)`` per row queues the reads without waiting): a cold query then
-    waits for about one round of disk reads, not one read per page fault in turn (measured
-    here: 0.06 ms instead of 0.8 ms per cold row)."""
+def prefetch_rows(path: Path, row_bytes: int, rows: np.ndarray, offset: int) -> None:
+    """Ask the kernel to read rows ``rows`` (``row_bytes`` each, data at ``offset``) of the file
+    at ``path`` now: ``posix_fadvise(WILLNEED)`` per row queues the reads without waiting, so a
+    cold query then waits for about one round of disk reads, not one read per page fault in
+    turn (measured here: 0.06 ms instead of 0.8 ms per cold row). Advice only: never fails."""
     if not len(rows) or not hasattr(os, "posix_fadvise"):
         return
-    row_bytes = arr.strides[0]
     try:
         fd = os.open(path, os.O_RDONLY)
-        start = os.fstat(fd).st_size - arr.nbytes  # .npy data runs from the header to the end
     except OSError:
-        return  # advice only: the search itself reports a missing file
+        return  # the read itself reports a missing file
     try:
         for r in np.unique(np.asarray(rows, dtype=np.int64)).tolist():
-            os.posix_fadvise(fd, start + r * row_bytes, row_bytes, os.POSIX_FADV_WILLNEED)
+            os.posix_fadvise(fd, offset + r * row_bytes, row_bytes, os.POSIX_FADV_WILLNEED)
     except OSError:
         pass
     finally:
         os.close(fd)
+
+
+def npy_data_offset(path: Path, arr: np.ndarray) -> int:
+    """Where the data of a ``.npy`` this package wrote starts (header first, data to the end;
+    sizes are checked against the manifest before any read)."""
+    return os.stat(path).st_size - arr.nbytes
 
 
 def validate_entries(path: Path, manifest: dict) -> None:
