@@ -198,3 +198,20 @@ def test_config_errors(config, message):
     if not torch.cuda.is_available():
         with pytest.raises(DescriptorError, match="CUDA is not available"):
             create_descriptor("mixvpr", {"device": "cuda"})
+
+
+def test_garbage_bytes_are_always_a_descriptor_error(tmp_path):
+    """Random bytes reach many corners of torch's unpickler (IndexError, struct.error, ...):
+    every one must be a DescriptorError naming the file, never an internal error. 300 fixed
+    seeds, plus bytes that look like a legacy pickle stream."""
+    from vlm_vpr_ros.descriptors.deep.weights import read_state_dict
+
+    rng = np.random.default_rng(11)
+    for i in range(300):
+        data = rng.integers(0, 256, int(rng.integers(1, 4096)), dtype=np.uint8).tobytes()
+        if i % 3 == 0:
+            data = b"\x80\x02" + data  # pickle protocol 2 header: the legacy loader path
+        w = tmp_path / f"w{i}.pth"
+        w.write_bytes(data)
+        with pytest.raises(DescriptorError, match=str(w)):
+            read_state_dict(w)

@@ -16,6 +16,7 @@ import logging
 import math
 import os
 import pickle
+import struct
 import zipfile
 import zlib
 from pathlib import Path
@@ -85,8 +86,9 @@ def read_state_dict(path: str | os.PathLike[str], what: str = "checkpoint"
                               "HTML page (a download that returned a web page?)")
     try:
         obj = torch.load(path, map_location="cpu", weights_only=True)
-    except (OSError, RuntimeError, ValueError, EOFError, KeyError, AttributeError,
-            pickle.UnpicklingError, zipfile.BadZipFile) as exc:
+    except (OSError, RuntimeError, ValueError, EOFError, KeyError, AttributeError, IndexError,
+            TypeError, OverflowError, MemoryError, struct.error, pickle.UnpicklingError,
+            zipfile.BadZipFile) as exc:  # garbage bytes reach the unpickler's every corner
         raise DescriptorError(f"{what} {path} is not a loadable torch checkpoint "
                               f"(read with weights_only=True): {type(exc).__name__}: "
                               f"{_short(exc)}") from exc
