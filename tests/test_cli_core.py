@@ -107,3 +107,24 @@ def test_errors_are_clear_exit_codes(tmp_path):
     proc = run("build-map", "--images", tmp_path, "--coords", tmp_path / "none.csv", "--out",
                tmp_path / "m", check=False)
     assert proc.returncode == 2 and "not found" in proc.stderr
+
+
+def test_started_ahead_keeps_order_and_a_bounded_window():
+    """The prior-request pump of localize (images and precomputed descriptors): items come back
+    in order, each started before it is handed out, never more than ``window`` ahead of the
+    one handed out."""
+    from vlm_vpr_ros.batch import started_ahead
+
+    started, seen = [], []
+
+    def start(x):
+        started.append(x)
+        return x * 10
+
+    for item, handle in started_ahead(range(7), start, window=3):
+        assert handle == item * 10 and item in started
+        assert len(started) - (len(seen) + 1) <= 3  # at most 3 started ahead of this one
+        seen.append(item)
+    assert seen == started == list(range(7))
+    assert [i for i, _ in started_ahead([], start)] == []
+    assert [i for i, _ in started_ahead("ab", str.upper, window=0)] == ["a", "b"]

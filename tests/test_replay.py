@@ -77,21 +77,27 @@ def _env() -> dict:
     return env
 
 
-def _replay(bag: Path, rate: float, tmp: Path) -> tuple[list, str]:
-    out = tmp / f"got_{rate}.json"
-    sub = subprocess.Popen([sys.executable, "-c", SUBSCRIBER, str(out), str(2 * FRAMES), "40"],
-                           env=_env())
+def _replay_into_probe(probe: str, probe_args: list[str], out: Path,
+                       replay_args: list[str]) -> tuple[object, str]:
+    """Start the probe script (it writes ``out``), run ``vlm-vpr replay`` to completion, wait
+    for the probe; (the probe's JSON, replay's stdout)."""
+    sub = subprocess.Popen([sys.executable, "-c", probe, str(out), *probe_args], env=_env())
     try:
-        rep = subprocess.run(
-            [sys.executable, "-m", "vlm_vpr_ros.cli", "replay", str(bag), "--rate", str(rate),
-             "--wait-subscribers", "30", "--remap", "/camera/image_raw:=/probe/image_raw"],
-            env=_env(), capture_output=True, text=True, timeout=90)
+        rep = subprocess.run([sys.executable, "-m", "vlm_vpr_ros.cli", "replay", *replay_args,
+                              "--wait-subscribers", "30"],
+                             env=_env(), capture_output=True, text=True, timeout=90)
         sub.wait(timeout=60)
     finally:
         if sub.poll() is None:
             sub.kill()
     assert rep.returncode == 0, rep.stderr
     return json.loads(out.read_text()), rep.stdout
+
+
+def _replay(bag: Path, rate: float, tmp: Path) -> tuple[list, str]:
+    return _replay_into_probe(SUBSCRIBER, [str(2 * FRAMES), "40"], tmp / f"got_{rate}.json",
+                              [str(bag), "--rate", str(rate),
+                               "--remap", "/camera/image_raw:=/probe/image_raw"])
 
 
 def _check_content(bag: Path, got: list) -> dict:
@@ -185,20 +191,8 @@ ctx.try_shutdown()
 def test_replay_clock_publishes_the_bag_time(small_bag, tmp_path):
     """--clock: /clock carries the bag's log time (from its first stamp, never past the last
     message + linger, non-decreasing) at about the requested rate."""
-    out = tmp_path / "clock.json"
-    sub = subprocess.Popen([sys.executable, "-c", CLOCK_PROBE, str(out), str(FRAMES), "40"],
-                           env=_env())
-    try:
-        rep = subprocess.run(
-            [sys.executable, "-m", "vlm_vpr_ros.cli", "replay", str(small_bag), "--clock", "50",
-             "--topics", "/gps/fix", "--wait-subscribers", "30"],
-            env=_env(), capture_output=True, text=True, timeout=90)
-        sub.wait(timeout=60)
-    finally:
-        if sub.poll() is None:
-            sub.kill()
-    assert rep.returncode == 0, rep.stderr
-    got = json.loads(out.read_text())
+    got, _ = _replay_into_probe(CLOCK_PROBE, [str(FRAMES), "40"], tmp_path / "clock.json",
+                                [str(small_bag), "--clock", "50", "--topics", "/gps/fix"])
     stamps = [m.log_time_ns for m in open_bag(small_bag).messages(["/gps/fix"])]
     assert got["fixes"] == stamps
     clocks = got["clocks"]

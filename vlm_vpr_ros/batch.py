@@ -6,10 +6,13 @@ retrieval without unbounded memory."""
 from __future__ import annotations
 
 import collections
+import itertools
 import logging
 import time
 from pathlib import Path
-from typing import Iterator, Sequence
+from typing import Any, Callable, Iterable, Iterator, Sequence, TypeVar
+
+import numpy as np
 
 from vlm_vpr_ros.errors import ImageDecodeError, VlmVprError
 from vlm_vpr_ros.imageio import load_image
@@ -18,6 +21,8 @@ from vlm_vpr_ros.priors.base import PriorProvider, PriorQuery, PriorResult, wait
 from vlm_vpr_ros.types import Hypothesis
 
 log = logging.getLogger(__name__)
+T = TypeVar("T")
+R = TypeVar("R")
 
 RESULT_FIELDS = ["file", "lat", "lon", "prior_lat", "prior_lon", "prior_source", "prior_reason",
                  "submap", "ref_id", "uncertainty_m", "radius95_m", "confidence", "fusion",
@@ -25,35 +30,35 @@ RESULT_FIELDS = ["file", "lat", "lon", "prior_lat", "prior_lon", "prior_source",
                  "descriptor_ms", "retrieval_ms", "rerank_ms", "prior_latency_s"]
 
 
+def started_ahead(items: Iterable[T], start: Callable[[T], R],
+                  window: int = 4) -> Iterator[tuple[T, R]]:
+    """``(item, start(item))`` in order, with up to ``window`` items started ahead of the one
+    handed out: the prior requests of the next queries run while it is localized."""
+    it = iter(items)
+    pending = collections.deque((x, start(x)) for x in itertools.islice(it, max(1, window)))
+    while pending:
+        item, handle = pending.popleft()
+        for nxt in itertools.islice(it, 1):
+            pending.append((nxt, start(nxt)))
+        yield item, handle
+
+
 def localize_files(pipeline: LocalizationPipeline, provider: PriorProvider,
                    images_dir: str | Path, files: Sequence[str], prior_timeout_s: float = 60.0,
                    window: int = 4) -> Iterator[dict]:
     """Yield one result row per file, in order; unreadable images give a flagged empty row."""
     images_dir = Path(images_dir)
-    pending: collections.deque = collections.deque()
-    it = iter(files)
 
-    def submit() -> bool:
-        f = next(it, None)
-        if f is None:
-            return False
+    def start(f: str) -> tuple[np.ndarray | None, Any, str]:
         try:
             path = images_dir / f
             data = path.read_bytes()
             image = load_image(path)
         except (OSError, ImageDecodeError) as exc:
-            pending.append((f, None, None, str(exc)))
-            return True
-        fut = provider.request(PriorQuery(image=image, encoded=data, key=f))
-        pending.append((f, image, fut, ""))
-        return True
+            return None, None, str(exc)
+        return image, provider.request(PriorQuery(image=image, encoded=data, key=f)), ""
 
-    for _ in range(max(1, window)):
-        if not submit():
-            break
-    while pending:
-        f, image, fut, err = pending.popleft()
-        submit()
+    for f, (image, fut, err) in started_ahead(files, start, window):
         if image is None:
             log.warning("query %s: %s", f, err)
             yield {"file": f, "flags": "image_error", "prior_reason": err}

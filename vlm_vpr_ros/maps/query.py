@@ -8,14 +8,13 @@ given. A NaN/inf or all-zero query row gives a flagged empty result row.
 
 from __future__ import annotations
 
-import collections
 import logging
 from pathlib import Path
-from typing import Iterator, Sequence
+from typing import Any, Iterator, Sequence
 
 import numpy as np
 
-from vlm_vpr_ros.batch import result_row
+from vlm_vpr_ros.batch import result_row, started_ahead
 from vlm_vpr_ros.errors import DataError, ImageDecodeError, VlmVprError
 from vlm_vpr_ros.localizer import Localizer
 from vlm_vpr_ros.maps.sources import open_npy
@@ -39,14 +38,9 @@ def localize_descriptors(localizer: Localizer, provider: PriorProvider, files: S
                          descs: np.ndarray, images_dir: str | Path | None = None,
                          prior_timeout_s: float = 60.0, window: int = 4) -> Iterator[dict]:
     """Yield one result row per query (columns of batch.RESULT_FIELDS), in order."""
-    pending: collections.deque = collections.deque()
-    it = iter(enumerate(files))
 
-    def submit() -> bool:
-        nxt = next(it, None)
-        if nxt is None:
-            return False
-        i, f = nxt
+    def start(item: tuple[int, str]) -> Any:
+        f = item[1]
         query = PriorQuery(key=f)
         if images_dir is not None:
             from vlm_vpr_ros.imageio import load_image
@@ -56,15 +50,9 @@ def localize_descriptors(localizer: Localizer, provider: PriorProvider, files: S
                 query = PriorQuery(image=load_image(path), encoded=path.read_bytes(), key=f)
             except (OSError, ImageDecodeError) as exc:
                 log.warning("query %s: image for the prior unreadable (%s)", f, exc)
-        pending.append((i, f, provider.request(query)))
-        return True
+        return provider.request(query)
 
-    for _ in range(max(1, window)):
-        if not submit():
-            break
-    while pending:
-        i, f, fut = pending.popleft()
-        submit()
+    for (i, f), fut in started_ahead(enumerate(files), start, window):
         q = np.asarray(descs[i], dtype=np.float32)
         if not np.all(np.isfinite(q)) or not q.any():
             yield {"file": f, "flags": "bad_descriptor",
