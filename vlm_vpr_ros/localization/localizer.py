@@ -169,15 +169,19 @@ class Localizer:
         return chosen, flags
 
     # -- retrieval ------------------------------------------------------------------------------
-    def search(self, desc: np.ndarray, submaps: list[int], k: int) -> list[Candidate]:
-        """Top-``k`` references by squared L2 over the given submaps (exact, merged)."""
+    def search(self, desc: np.ndarray, submaps: list[int], k: int,
+               with_global: bool = False) -> list[Candidate]:
+        """Top-``k`` references by squared L2 over the given submaps (exact, merged).
+        ``with_global``: plus the map's global top-``k`` references not among them, merged by
+        distance, from the same pass (no submap is searched twice; see
+        :meth:`ReferenceMap.search_submaps`)."""
         q = np.ascontiguousarray(np.asarray(desc, dtype=np.float32).reshape(1, -1))
         if q.shape[1] != self.map.dim:
             raise DescriptorError(f"query descriptor has dim {q.shape[1]}, the map has "
                                   f"{self.map.dim}")
-        found = self.map.search_submaps(list(submaps), q, k)  # exact; pq: + re-rank
+        found = self.map.search_submaps(list(submaps), q, k, with_global)  # pq: + re-rank
         out = []
-        for d, si, j in found[:k]:
+        for d, si, j in found:
             sub = self.map.submaps[si]
             out.append(Candidate(sub.ids[j], float(sub.coords[j, 0]), float(sub.coords[j, 1]),
                                  d, sub.id))
@@ -204,14 +208,11 @@ class Localizer:
         submaps, sflags = self.select_submaps(prior)
         flags += sflags
         searched_all = len(submaps) == len(self._all)
-        cands = self.search(desc, submaps, cfg.top_p)
-        if (cfg.fusion == "posterior" and prior is not None and not searched_all
-                and self.map.n_references <= cfg.global_merge_max_refs):
-            seen = {(c.submap, c.ref_id) for c in cands}
-            extra = [c for c in self.search(desc, self._all, cfg.top_p)
-                     if (c.submap, c.ref_id) not in seen]
-            cands = sorted(cands + extra, key=lambda c: c.l2_sq)
-            searched_all = True
+        # posterior on a small map: the region's top-p + the global top-p, one pass
+        with_global = (cfg.fusion == "posterior" and prior is not None and not searched_all
+                       and self.map.n_references <= cfg.global_merge_max_refs)
+        cands = self.search(desc, submaps, cfg.top_p, with_global)
+        searched_all = searched_all or with_global
         t1 = time.perf_counter()
         if not cands:
             return self._no_match(prior, prior_result, flags, (t1 - t0) * 1e3)

@@ -21,6 +21,7 @@ from vlm_vpr_ros.descriptors import GlobalDescriptor, create_descriptor
 from vlm_vpr_ros.errors import MapError
 from vlm_vpr_ros.maps import indexes, store, v1
 from vlm_vpr_ros.maps.format import check_descriptor_identity, load_state, read_manifest
+from vlm_vpr_ros.maps.search import SubmapPass
 from vlm_vpr_ros.maps.submap import Submap
 
 log = logging.getLogger(__name__)
@@ -90,44 +91,26 @@ class ReferenceMap:
         log.debug("opened %d submaps in %.2f s", len(self.submaps), time.perf_counter() - t0)
         return self
 
-    def search_submaps(self, submaps: list[int], q: np.ndarray,
-                       k: int) -> list[tuple[float, int, int]]:
+    def search_submaps(self, submaps: list[int], q: np.ndarray, k: int,
+                       with_global: bool = False) -> list[tuple[float, int, int]]:
         """Top-``k`` (squared L2, submap, row) over several submaps, best first (ties by
         submap, row). flat/fp16 submaps are searched exactly, one by one; pq submaps together,
         as one pq index over their union would be: PQ candidates from each (serially: threads
         measured slower, OpenMP teams contend), then only the best ``k·rerank_factor`` of them
-        all are re-ranked exactly (one re-rank per query, not one per submap)."""
-        found: list[tuple[float, int, int]] = []
-        live = [si for si in submaps if self.submaps[si].count > 0]
-        pq = [si for si in live if self.submaps[si].kind == "pq"] if len(live) > 1 else []
-        for si in live:
-            if si not in pq:
-                dist, idx = self.search_submap(si, q, min(k, self.submaps[si].count))
-                found += [(float(d), si, int(j)) for d, j in zip(dist, idx) if j >= 0]
-        if pq:
-            kk = k * max(1, self.rerank_factor)
-            stage1 = [self.submaps[si].pq_candidates(q, kk) for si in pq]
-            approx = np.concatenate([d for d, _ in stage1])
-            owner = np.concatenate([np.full(len(r), si) for si, (_, r) in zip(pq, stage1)])
-            rows = np.concatenate([r for _, r in stage1])
-            if len(approx) > kk:
-                best = np.argpartition(approx, kk - 1)[:kk]
-                owner, rows = owner[best], rows[best]
-            picked = [(si, np.sort(rows[owner == si])) for si in np.unique(owner).tolist()]
-            if len(picked) > 1:  # cold pages of many files: all reads queued at once (one
-                for si, r in picked:  # submap: measured no gain, only the advice's cost)
-                    self.submaps[si].prefetch(r, ("vectors",))
-            for si, r in picked:
-                dist = self.submaps[si].exact_sq_l2(r, q)
-                found += [(float(d), si, int(j)) for d, j in zip(dist, r)]
-        found.sort()
-        found = found[:k]
-        by_sub: dict[int, list[int]] = {}
-        for _, si, j in found:  # the caller reads their ids and positions next
-            by_sub.setdefault(si, []).append(j)
-        for si, r in by_sub.items() if len(by_sub) > 1 else ():
-            self.submaps[si].prefetch(np.sort(np.array(r)), ("coords", "ids"))
-        return found
+        all are re-ranked exactly (one re-rank per query, not one per submap).
+
+        ``with_global``: also the map's global top-``k`` hits that the ranking of ``submaps``
+        lacks, merged in by distance (``submaps``' hits first on ties): the posterior fusion's
+        region + global merge, from one pass in which no submap is searched twice
+        (:mod:`vlm_vpr_ros.maps.search`)."""
+        sweep = SubmapPass(self.submaps, q, k, self.rerank_factor)
+        dist, sub, row = sweep.rank_with_global(submaps) if with_global else \
+            sweep.rank(submaps)[0]
+        touched = np.unique(sub)
+        if len(touched) > 1:  # the caller reads their ids and positions next
+            for si in touched.tolist():
+                self.submaps[si].prefetch(np.sort(row[sub == si]), ("coords", "ids"))
+        return list(zip(dist.tolist(), sub.tolist(), row.tolist()))
 
     def all_descriptors(self) -> np.ndarray:
         """All descriptors (submap order): reconstructed from flat/fp16 indices, or the fp16

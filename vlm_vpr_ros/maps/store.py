@@ -156,6 +156,7 @@ class LazySubmap:
         self.files: dict[str, str] = dict(entry["files"])
         self._sizes = {rel: int(files_meta[rel]["bytes"]) for rel in self.files.values()}
         self._inodes: dict[str, tuple[int, int]] = {}
+        self._stat_paths: list[tuple[str, int, str]] | None = None  # (rel, bytes, path)
         self._lock = threading.Lock()
         self._open: tuple[Any, np.ndarray, IdView, np.ndarray | None] | None = None
         self._coords: np.ndarray | None = None  # mapped without opening the index
@@ -165,9 +166,12 @@ class LazySubmap:
         """MapError when a file is missing or its size differs from the manifest. For an open
         submap, a file replaced by another one (new inode, e.g. an atomic map update) is not an
         error: the mapping keeps the old file alive."""
-        for rel, size in self._sizes.items():
+        if self._stat_paths is None:  # joined once: a pathlib join per file and search cost
+            self._stat_paths = [(rel, size, os.fspath(self.root / rel))  # 6x the stat itself
+                                for rel, size in self._sizes.items()]
+        for rel, size, path in self._stat_paths:
             try:
-                st = os.stat(self.root / rel)
+                st = os.stat(path)
             except OSError as exc:
                 if self._open is not None:
                     continue  # unlinked: the mapping keeps the data alive
