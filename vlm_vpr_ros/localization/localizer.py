@@ -5,14 +5,17 @@ Two fusion modes (docs/fusion.md):
 * ``posterior`` (default): the prior's confidence region (a quantile of the VLM error model)
   picks every submap it intersects, within a budget of references; on maps small enough
   (``global_merge_max_refs``) the global top-p is merged in, so a prior can never hide the best
-  visual match. Candidates are scored by visual likelihood + prior likelihood
-  (:mod:`vlm_vpr_ros.localization.fusion.posterior`) and the estimate is the geographic vote's winner.
+  visual match — from the same pass over the map (no submap is searched twice, so this costs
+  one global search, :mod:`vlm_vpr_ros.maps.search`). Candidates are scored by visual
+  likelihood + prior likelihood (:mod:`vlm_vpr_ros.localization.fusion.posterior`) and the
+  estimate is the geographic vote's winner.
 * ``paper``: the method of Waheed et al. — the one submap nearest to the prior, top-p, re-rank by
   haversine distance to the prior (``use_submaps`` / ``rerank`` / ``n_submaps`` ablations).
 
 In both modes ``uncertainty_m`` is the calibrated radius that holds the true position with 68 %
 probability and ``radius95_m`` the 95 % one, from the posterior over the candidates
-(:mod:`vlm_vpr_ros.localization.fusion.calibration`). Always finite: capped at half the Earth's circumference.
+(:mod:`vlm_vpr_ros.localization.fusion.calibration`). Always finite: capped at half the Earth's
+circumference.
 """
 
 from __future__ import annotations

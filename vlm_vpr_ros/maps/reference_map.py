@@ -106,9 +106,10 @@ class ReferenceMap:
         sweep = SubmapPass(self.submaps, q, k, self.rerank_factor)
         dist, sub, row = sweep.rank_with_global(submaps) if with_global else \
             sweep.rank(submaps)[0]
-        touched = np.unique(sub)
-        if len(touched) > 1:  # the caller reads their ids and positions next
-            for si in touched.tolist():
+        touched = np.unique(sub).tolist()
+        for si in touched:  # the caller reads the hits' ids and positions next
+            self.submaps[si].check_files(("coords", "ids"))
+            if len(touched) > 1:  # cold pages of several files: reads queued at once
                 self.submaps[si].prefetch(np.sort(row[sub == si]), ("coords", "ids"))
         return list(zip(dist.tolist(), sub.tolist(), row.tolist()))
 

@@ -15,8 +15,9 @@ into place, so a folder with a manifest is complete)::
 Opening a map reads the manifest and ``stat``s every file (sizes must match); no file is read.
 A submap is opened on first use (sizes checked again before mapping). A file truncated while the
 map is open would make the next page access raise SIGBUS (a crash Python cannot catch), so every
-search first compares the sizes of the submap's files with the manifest (a few ``stat`` calls)
-and raises :class:`MapError` instead. The full sha256 pass is :func:`~vlm_vpr_ros.maps.format.verify_files`
+search first compares the sizes of the files it reads with the manifest (a ``stat`` call each;
+coords and ids of the submaps that hold hits before they are read) and raises
+:class:`MapError` instead. The full sha256 pass is :func:`~vlm_vpr_ros.maps.format.verify_files`
 (``vlm-vpr map verify``, node parameter ``verify_map``).
 """
 
@@ -43,6 +44,8 @@ from vlm_vpr_ros.maps.submap import submap_radius_km
 log = logging.getLogger(__name__)
 
 VERSION = 2
+#: the files a search of a submap of each kind reads (coords and ids: read for the hits only)
+SEARCH_ROLES = {"flat": ("index",), "fp16": ("index",), "pq": ("index", "vectors")}
 
 
 # -- writing ----------------------------------------------------------------------------------
@@ -156,20 +159,23 @@ class LazySubmap:
         self.files: dict[str, str] = dict(entry["files"])
         self._sizes = {rel: int(files_meta[rel]["bytes"]) for rel in self.files.values()}
         self._inodes: dict[str, tuple[int, int]] = {}
-        self._stat_paths: list[tuple[str, int, str]] | None = None  # (rel, bytes, path)
+        self._stat_paths: list[tuple[str, str, int, str]] | None = None  # role, rel, bytes, path
         self._lock = threading.Lock()
         self._open: tuple[Any, np.ndarray, IdView, np.ndarray | None] | None = None
         self._coords: np.ndarray | None = None  # mapped without opening the index
 
     # -- size guard (prevents SIGBUS on truncated mapped files) --------------------------------
-    def check_files(self) -> None:
+    def check_files(self, roles: tuple[str, ...] | None = None) -> None:
         """MapError when a file is missing or its size differs from the manifest. For an open
         submap, a file replaced by another one (new inode, e.g. an atomic map update) is not an
-        error: the mapping keeps the old file alive."""
+        error: the mapping keeps the old file alive. ``roles``: only these files (index,
+        vectors, coords, ids: what the caller reads next); all by default."""
         if self._stat_paths is None:  # joined once: a pathlib join per file and search cost
-            self._stat_paths = [(rel, size, os.fspath(self.root / rel))  # 6x the stat itself
-                                for rel, size in self._sizes.items()]
-        for rel, size, path in self._stat_paths:
+            self._stat_paths = [(role, rel, self._sizes[rel], os.fspath(self.root / rel))
+                                for role, rel in self.files.items()]  # 6x the stat itself
+        for role, rel, size, path in self._stat_paths:
+            if roles is not None and role not in roles:
+                continue
             try:
                 st = os.stat(path)
             except OSError as exc:
@@ -256,13 +262,17 @@ class LazySubmap:
         return self.opened()[3]
 
     def search(self, q: np.ndarray, k: int, factor: int) -> tuple[np.ndarray, np.ndarray]:
+        """Top-``k`` (squared L2, row). Checks the files the search reads (the index; pq: and
+        the re-rank vectors); the caller checks coords and ids before reading the hits' rows
+        (``ReferenceMap.search_submaps``): one stat per flat submap and query, not three."""
         index, _, _, rerank = self.opened()
-        self.check_files()
+        self.check_files(SEARCH_ROLES[self.kind])
         return indexes.search(index, self.kind, rerank, q, k, factor)
 
     def pq_candidates(self, q: np.ndarray, kk: int) -> tuple[np.ndarray, np.ndarray]:
+        """Stage 1 of a pq search; checks the index and the vectors the re-rank reads next."""
         index = self.opened()[0]
-        self.check_files()
+        self.check_files(SEARCH_ROLES["pq"])
         return indexes.pq_candidates(index, q, kk)
 
     def exact_sq_l2(self, rows: np.ndarray, q: np.ndarray) -> np.ndarray:
