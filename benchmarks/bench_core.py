@@ -84,24 +84,40 @@ def synthetic_map(tmp: Path, name: str, c: np.ndarray, dim: int, partition: str,
     return ReferenceMap.load(tmp / name)
 
 
-def scanned(loc: Localizer, q: np.ndarray, prior: PriorResult | None) -> tuple[int, int]:
-    """(submap searches, references scanned) of one localize() call."""
-    counts: list[int] = []
+def scanned(loc: Localizer, q: np.ndarray, prior: PriorResult | None) -> dict:
+    """What one localize() call scans: submaps (a submap scanned twice counts twice), FAISS
+    index searches (the small submaps' pooled copy is one per kind) and references."""
+    seen = {"submaps": 0, "searches": 0, "refs": 0}
+    hooked = []
     for s in loc.map.submaps:
         for name in SEARCHES:
             orig = getattr(s, name)
 
             def spy(*a, _orig=orig, _n=s.count):
-                counts.append(_n)
+                seen["submaps"] += 1
+                seen["searches"] += 1
+                seen["refs"] += _n
                 return _orig(*a)
             setattr(s, name, spy)
+            hooked.append((s, name))
+    small = getattr(loc.map, "small_submaps", None)  # absent before issue 23
+    if small is not None:
+        pool = small()
+        orig_hits = pool.hits
+
+        def pooled(*a, _orig=orig_hits, _pool=pool):
+            seen["submaps"] += int(_pool.pooled.sum())
+            seen["searches"] += len(_pool.parts)
+            seen["refs"] += _pool.n_refs
+            return _orig(*a)
+        pool.hits = pooled
+        hooked.append((pool, "hits"))
     try:
         loc.localize(q, prior)
     finally:
-        for s in loc.map.submaps:
-            for name in SEARCHES:
-                delattr(s, name)
-    return len(counts), sum(counts)
+        for obj, name in hooked:
+            delattr(obj, name)
+    return seen
 
 
 def bench_frames(tmp: Path, n_frames: int, c: np.ndarray) -> dict:
@@ -174,20 +190,39 @@ def bench_modes(tmp: Path, c: np.ndarray, src: str, dim: int, n_queries: int,
     rows = {}
     for name, loc, pr, key in modes:
         region, _ = loc.select_submaps(pr.prior if pr else None)
-        searches, refs = scanned(loc, q[0], pr)
-        rows[key] = {"name": name, "region_submaps": len(region), "submaps_searched": searches,
-                     "refs_scanned": refs, "times": []}
+        seen = scanned(loc, q[0], pr)
+        rows[key] = {"name": name, "region_submaps": len(region),
+                     "submaps_searched": seen["submaps"], "faiss_searches": seen["searches"],
+                     "refs_scanned": seen["refs"], "times": []}
     for x in q[1:]:
         for _, loc, pr, key in modes:
             t = time.perf_counter()
             loc.localize(x, pr)
             rows[key]["times"].append(time.perf_counter() - t)
+    threads = threads_rows(flat.submaps[0].index, q[1:], top_p)
     base = statistics.median(rows["global_flat"]["times"])
     for r in rows.values():
         r.update(stats(r.pop("times")))
         r["vs_global"] = round(r["median_ms"] / (base * 1e3), 3)
     return {"src": src, "n": len(c), "dim": dim, "n_submaps": len(country.submaps),
-            "partition_s": part_s, "rows": rows}
+            "partition_s": part_s, "rows": rows, "threads": threads}
+
+
+def threads_rows(index, queries: np.ndarray, top_p: int) -> dict:
+    """FAISS's search alone on one flat index, with its OpenMP default and with the one thread
+    a localizer query uses (maps/search.py), alternated query by query."""
+    import faiss
+
+    default = faiss.omp_get_max_threads()
+    times: dict[int, list[float]] = {default: [], 1: []}
+    for x in queries:
+        for n in times:
+            faiss.omp_set_num_threads(n)
+            t = time.perf_counter()
+            index.search(x[None, :], top_p)
+            times[n].append(time.perf_counter() - t)
+    faiss.omp_set_num_threads(default)
+    return {n: stats(t) for n, t in times.items()}
 
 
 def bench_submap_sizes(tmp: Path, n_sub: int, dims: tuple[int, ...], n_queries: int,
@@ -256,14 +291,21 @@ def main() -> int:
     print(f"\nretrieval + fusion per query, {qb['n']:,} refs, {qb['dim']}-D float32 (unless "
           f"noted), {qb['n_submaps']} country submaps, top-{a.top_p}; {a.queries} queries, "
           f"modes timed round-robin; last column: median / the one global search's median")
-    print("| mode | region (submaps) | submaps searched | references scanned | median ms "
-          "(p95) | / one global search |")
-    print("|---|---|---|---|---|---|")
+    print("| mode | region (submaps) | submaps searched | FAISS searches | references scanned "
+          "| median ms (p95) | / one global search |")
+    print("|---|---|---|---|---|---|---|")
     for key, r in qb["rows"].items():
         table[r["name"]] = {"value": ms(r).strip(), "key": key, **{
             k: v for k, v in r.items() if k != "name"}}
         print(f"| {r['name']} | {r['region_submaps']} | {r['submaps_searched']} | "
-              f"{r['refs_scanned']:,} | {ms(r)} | {r['vs_global']:.2f}x |")
+              f"{r['faiss_searches']} | {r['refs_scanned']:,} | {ms(r)} | "
+              f"{r['vs_global']:.2f}x |")
+    for n, st in qb["threads"].items():
+        name = (f"FAISS search alone, the flat index of {qb['n']:,} refs, "
+                + ("1 OpenMP thread (as in a localizer query)" if n == 1 else
+                   f"OpenMP default ({n} threads)"))
+        table[name] = {"value": ms(st).strip(), "threads": n, **st}
+        print(f"| {name} | | | 1 | {qb['n']:,} | {ms(st)} | |")
     rows = qb["rows"]
     print("\n| target (same run) | measured | status |")
     print("|---|---|---|")

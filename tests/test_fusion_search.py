@@ -105,16 +105,18 @@ def test_any_submap_set_in_any_order(maps, kind):
         assert m.search_submaps(region, q, k, True) == two_searches_v1(m, region, q, k)
 
 
-def test_loaded_map_same_answers_each_submap_searched_once(maps, tmp_path, monkeypatch):
+@pytest.mark.parametrize("kind", ["flat", "pq+fp16"])
+def test_loaded_map_same_answers_each_submap_searched_once(maps, kind, tmp_path, monkeypatch):
     """A saved + memory-mapped (v2) map answers as the two searches; one query's merged search
-    scans every live submap once and re-ranks every pq row at most once."""
-    m, desc, copies = maps["pq+fp16"]
+    scans every live submap once (alone, or in the small submaps' pool, searched once) and
+    re-ranks every pq row at most once."""
+    m, desc, copies = maps[kind]
     m.save(tmp_path / "map")
     loaded = ReferenceMap.load(tmp_path / "map")
     rng = np.random.default_rng(6)
     q, priors = queries_and_priors(desc, copies, rng, n=10)
     assert assert_same_answers(Localizer(loaded), TwoSearchLocalizer(loaded), q, priors) >= 3
-    calls: dict[str, list] = {"search": [], "pq": [], "rows": []}
+    calls: dict[str, list] = {"search": [], "pq": [], "rows": [], "pool": []}
     for s in loaded.submaps:
         for name, key in (("search", "search"), ("pq_candidates", "pq"),
                           ("exact_sq_l2", "rows")):
@@ -124,14 +126,47 @@ def test_loaded_map_same_answers_each_submap_searched_once(maps, tmp_path, monke
                 calls[_key].append((_sid, a[0]) if _key == "rows" else _sid)
                 return _orig(*a)
             monkeypatch.setattr(s, name, spy)
+    small = loaded.small_submaps()
+    pool_hits = small.hits
+    monkeypatch.setattr(small, "hits", lambda *a: calls["pool"].append(1) or pool_hits(*a))
+    pooled = [s.id for s, p in zip(loaded.submaps, small.pooled) if p]
+    assert (len(pooled) > 10) == (kind == "flat")
     loc = Localizer(loaded)
     hyp = loc.localize(q[0], PriorResult(Prior(*TOWNS[0], "test", 25.0), "test"))
     region, _ = loc.select_submaps(hyp.prior)
-    assert hyp.submap == "*" and len(region) < len([s for s in loaded.submaps if s.count])
+    live = [s.id for s in loaded.submaps if s.count]
+    assert hyp.submap == "*" and len(region) < len(live)
     searched = calls["search"] + calls["pq"]
-    assert sorted(searched) == sorted(s.id for s in loaded.submaps if s.count)
+    assert len(calls["pool"]) == (1 if pooled else 0)
+    assert sorted(searched + pooled) == sorted(live)
     rows = [(sid, int(r)) for sid, rr in calls["rows"] for r in rr]
-    assert rows and len(rows) == len(set(rows))
+    assert len(rows) == len(set(rows)) and (kind == "flat" or rows)
+
+
+@pytest.mark.parametrize("kind", ["flat", "fp16"])
+def test_pooled_small_submaps_give_each_submaps_own_distances(kind, monkeypatch):
+    """One call over the pooled copy returns, for every row of every small submap, the
+    distance that submap's own FAISS search gives (dims with special FAISS kernels included);
+    a pool over its byte limit keeps the smallest submaps and searches the rest alone."""
+    from vlm_vpr_ros.maps import search
+
+    rng = np.random.default_rng(8)
+    for dim in (8, 12, 33, 128):
+        subs = [Submap(f"s{i}", (0.0, 0.0), np.zeros((n, 2)), [f"r{j}" for j in range(n)],
+                       make_index(kind, rng.normal(size=(n, dim)).astype(np.float32)),
+                       kind=kind) for i, n in enumerate([1, 5, 40, 1500, 256, 0, 17])]
+        small = search.SmallSubmaps(subs)
+        assert small.pooled.tolist() == [True, True, True, False, True, False, True]
+        q = rng.normal(size=(1, dim)).astype(np.float32)
+        d, s, r = small.hits(q)
+        assert len(d) == 1 + 5 + 40 + 256 + 17
+        for si in np.flatnonzero(small.pooled):
+            want_d, want_r = subs[si].search(q, subs[si].count, 1)
+            got = dict(zip(r[s == si].tolist(), d[s == si].tolist()))
+            assert got == dict(zip(want_r.tolist(), want_d.tolist()))
+    monkeypatch.setattr(search, "POOL_MAX_BYTES", (1 + 5 + 17) * 128 * 4)
+    small = search.SmallSubmaps(subs)
+    assert small.pooled.tolist() == [True, True, False, False, False, False, True]
 
 
 def test_rerank_distances_equal_faiss_fp16_decoder_bit_for_bit():
@@ -151,3 +186,32 @@ def test_rerank_distances_equal_faiss_fp16_decoder_bit_for_bit():
         want = np.einsum("ij,ij->i", want, want)
         got = exact_sq_l2(half, rows, q)
         assert got.dtype == np.float32 and np.array_equal(got, want)
+
+
+def test_one_faiss_thread_is_per_thread_and_restored(maps):
+    """A query's pass runs FAISS single-threaded on its own thread only, and restores it."""
+    import threading
+
+    import faiss
+
+    from vlm_vpr_ros.maps.search import one_faiss_thread
+
+    m, desc, _ = maps["flat"]
+    before = faiss.omp_get_max_threads()
+    m.search_submaps(list(range(len(m.submaps))), desc[:1], 5)
+    assert faiss.omp_get_max_threads() == before
+    inside, release, seen = threading.Event(), threading.Event(), {}
+
+    def worker():
+        with one_faiss_thread():
+            seen["worker"] = faiss.omp_get_max_threads()
+            inside.set()
+            release.wait(30)
+
+    t = threading.Thread(target=worker)
+    t.start()
+    assert inside.wait(30)
+    seen["main"] = faiss.omp_get_max_threads()
+    release.set()
+    t.join(30)
+    assert seen == {"worker": 1, "main": before}

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import os
+import threading
 import time
 from pathlib import Path
 from typing import Any, Mapping
@@ -21,10 +22,15 @@ from vlm_vpr_ros.descriptors import GlobalDescriptor, create_descriptor
 from vlm_vpr_ros.errors import MapError
 from vlm_vpr_ros.maps import indexes, store, v1
 from vlm_vpr_ros.maps.format import check_descriptor_identity, load_state, read_manifest
-from vlm_vpr_ros.maps.search import SubmapPass
+from vlm_vpr_ros.maps.search import SmallSubmaps, SubmapPass
 from vlm_vpr_ros.maps.submap import Submap
 
 log = logging.getLogger(__name__)
+
+#: read-ahead advice for the hits' coords and ids only on maps where those files are this big:
+#: smaller ones stay in the page cache after the first queries, and the advice (an open, a
+#: fadvise per row and a close per file) then costs ~0.5 ms per query for nothing
+PREFETCH_MIN_BYTES = 64 * 2 ** 20
 
 
 class ReferenceMap:
@@ -41,6 +47,9 @@ class ReferenceMap:
         self._groups: dict[str, list[int]] = {}
         for i, s in enumerate(submaps):
             self._groups.setdefault(s.group or s.id, []).append(i)
+        self._small: SmallSubmaps | None = None  # see small_submaps()
+        self._cache: dict = {}  # row_bytes()
+        self._small_lock = threading.Lock()
         #: pq submaps re-rank the top k·rerank_factor PQ candidates exactly (tunable per query)
         self.rerank_factor = int(manifest.get("index_params", {}).get(
             "rerank_factor", indexes.DEFAULT_RERANK_FACTOR))
@@ -103,15 +112,40 @@ class ReferenceMap:
         lacks, merged in by distance (``submaps``' hits first on ties): the posterior fusion's
         region + global merge, from one pass in which no submap is searched twice
         (:mod:`vlm_vpr_ros.maps.search`)."""
-        sweep = SubmapPass(self.submaps, q, k, self.rerank_factor)
+        sweep = SubmapPass(self.submaps, q, k, self.rerank_factor, self.small_submaps())
         dist, sub, row = sweep.rank_with_global(submaps) if with_global else \
             sweep.rank(submaps)[0]
         touched = np.unique(sub).tolist()
+        advise = len(touched) > 1 and self.row_bytes(("coords", "ids")) >= PREFETCH_MIN_BYTES
         for si in touched:  # the caller reads the hits' ids and positions next
             self.submaps[si].check_files(("coords", "ids"))
-            if len(touched) > 1:  # cold pages of several files: reads queued at once
+            if advise:  # cold pages of several files: reads queued at once
                 self.submaps[si].prefetch(np.sort(row[sub == si]), ("coords", "ids"))
         return list(zip(dist.tolist(), sub.tolist(), row.tolist()))
+
+    def row_bytes(self, roles: tuple[str, ...]) -> int:
+        """Bytes on disk of the submaps' files in ``roles`` (v2 manifest; 0 in memory)."""
+        key = ("row_bytes", roles)
+        if key not in self._cache:
+            files = self.manifest.get("files") or {}
+            self._cache[key] = sum(int((files.get(rel) or {}).get("bytes", 0))
+                                   for entry in self.manifest.get("submaps", [])
+                                   if isinstance(entry, dict)
+                                   for role, rel in (entry.get("files") or {}).items()
+                                   if role in roles)
+        return self._cache[key]
+
+    def small_submaps(self) -> SmallSubmaps:
+        """The small submaps' pooled copy (built on the first search, :mod:`.search`)."""
+        small = self._small
+        if small is None or small.source != tuple(map(id, self.submaps)):
+            with self._small_lock:
+                small = self._small
+                if small is None or small.source != tuple(map(id, self.submaps)):
+                    small = self._small = SmallSubmaps(self.submaps)
+                    log.debug("pooled %d small submaps (%d references) for one-call search",
+                              int(small.pooled.sum()), small.n_refs)
+        return small
 
     def all_descriptors(self) -> np.ndarray:
         """All descriptors (submap order): reconstructed from flat/fp16 indices, or the fp16

@@ -17,20 +17,45 @@ order, as one pq index over their union would pick them) re-ranked exactly. The 
 the global ranking therefore come from one pass over the map and equal two separate searches
 (tests/test_fusion_search.py checks that against the two-search implementation).
 
-Merging is numpy, not one Python tuple per hit: a country partition has hundreds of small
-submaps, and per-hit Python work was a measurable part of a whole-map search.
+Merging is numpy, not one Python tuple per hit. A country partition has hundreds of small
+submaps (215 of the 230 of the 100k MP-16 map hold <= 1,024 references, 24 % of them), and a
+FAISS call per small submap costs more than its scan: :class:`SmallSubmaps` keeps a copy of
+the small flat/fp16 submaps (<= ``POOL_MAX_REFS`` references each, at most ``POOL_MAX_BYTES``:
+49 MB on that map at 512-D, 24 MB at 256-D) in one index per kind, scanned with one call that
+returns the rows within the k-th distance the pass has already found elsewhere (all rows when
+it has none) — the same distances as each submap's own search (same FAISS kernel; checked in
+tests/test_fusion_search.py). Taking those rows instead of each small submap's
+top-``min(k, count)`` changes no ranking: FAISS keeps the lowest rows on ties, so a row beyond
+its submap's top-k has k rows of that submap ahead of it. Measured on the maps of
+``benchmarks/bench_core.py`` (512-D, one process, queries interleaved, load ~3): posterior with
+a VLM-like prior / one global search 1.12x with the pool of submaps up to 1,024 references,
+1.18x with a pool up to 256.
+
+A pass runs FAISS on one OpenMP thread (this thread only; restored afterwards): FAISS splits a
+single query's scan of a large index over an OpenMP team, and a team's wake-up costs a
+scheduler round when the cores are busy — on this 2-core machine at load 5, a 100k-reference
+flat search took 72 ms with the default 2 threads and 20 ms with one, and the 230 country
+submaps 25 ms against 6 ms (``benchmarks/bench_core.py`` prints both settings for the flat
+search). Batch work (building, recall measurement) keeps FAISS's threads.
 """
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+import contextlib
+import math
+from typing import Any, Iterator, Sequence
 
 import numpy as np
+
+from vlm_vpr_ros.maps.indexes import make_index
 
 #: ranked hits: (squared L2 float32, submap index int64, row int64), best first
 Hits = tuple[np.ndarray, np.ndarray, np.ndarray]
 
 _ROW_BITS = 40  # (submap, row) packed in one int64 key: rows < 2**40, submaps < 2**23
+#: submaps of at most this many references are scanned together (module docstring)
+POOL_MAX_REFS = 1024
+POOL_MAX_BYTES = 64 * 2 ** 20  # the pooled copy's size limit (smallest submaps first)
 
 
 def _empty() -> Hits:
@@ -39,6 +64,31 @@ def _empty() -> Hits:
 
 def _key(submap: np.ndarray, row: np.ndarray) -> np.ndarray:
     return (submap.astype(np.int64) << _ROW_BITS) | row.astype(np.int64)
+
+
+@contextlib.contextmanager
+def one_faiss_thread() -> Iterator[None]:
+    """FAISS on one OpenMP thread in this block, on this thread (OpenMP's thread count is a
+    per-thread setting: other threads are not affected)."""
+    import faiss
+
+    before = faiss.omp_get_max_threads()
+    if before == 1:
+        yield
+        return
+    faiss.omp_set_num_threads(1)
+    try:
+        yield
+    finally:
+        faiss.omp_set_num_threads(before)
+
+
+def _kth(dist: np.ndarray, k: int) -> float:
+    """The k-th smallest distance; infinity when there are fewer (or it is NaN)."""
+    if len(dist) < k:
+        return math.inf
+    kth = float(np.partition(dist, k - 1)[k - 1])
+    return kth if kth == kth else math.inf
 
 
 def top_k(dist: np.ndarray, submap: np.ndarray, row: np.ndarray, k: int) -> Hits:
@@ -53,13 +103,66 @@ def top_k(dist: np.ndarray, submap: np.ndarray, row: np.ndarray, k: int) -> Hits
     return dist[order], submap[order], row[order]
 
 
+class SmallSubmaps:
+    """The small flat/fp16 submaps of a submap list, copied into one FAISS index per kind."""
+
+    def __init__(self, submaps: Sequence[Any]) -> None:
+        self.source = tuple(map(id, submaps))
+        self.pooled = np.zeros(len(submaps), dtype=bool)
+        self.parts: list[tuple[str, Any, np.ndarray, np.ndarray]] = []
+        small = sorted((s.count, i) for i, s in enumerate(submaps)
+                       if s.kind in ("flat", "fp16") and 0 < s.count <= POOL_MAX_REFS)
+        budget, members = POOL_MAX_BYTES, {"flat": [], "fp16": []}
+        for n, i in small:
+            vecs = submaps[i].vectors()  # float32 (fp16: decoded exactly)
+            budget -= vecs.nbytes // (1 if submaps[i].kind == "flat" else 2)
+            if budget < 0:
+                break
+            members[submaps[i].kind].append((i, vecs))
+        for kind, got in members.items():
+            if len(got) < 2:
+                continue  # one submap: nothing to save
+            got.sort(key=lambda m: m[0])
+            index = make_index(kind, np.concatenate([v for _, v in got]))
+            owner = np.repeat([i for i, _ in got], [len(v) for _, v in got]).astype(np.int64)
+            row = np.concatenate([np.arange(len(v), dtype=np.int64) for _, v in got])
+            self.parts.append((kind, index, owner, row))
+            self.pooled[[i for i, _ in got]] = True
+
+    @property
+    def n_refs(self) -> int:
+        return sum(len(owner) for _, _, owner, _ in self.parts)
+
+    def hits(self, q: np.ndarray, bound: float = math.inf) -> Hits:
+        """(squared L2, submap, row) of every pooled reference at most ``bound`` away; flat: a
+        range search (no top-k heap; FAISS keeps distances below its radius: the next float32
+        above ``bound``), fp16: a search for all rows (its range search uses another kernel,
+        whose distances differ in the last bit for some dims)."""
+        dist, sub, row = [], [], []
+        radius = float(np.nextafter(np.float32(bound), np.float32(np.inf)))
+        for kind, index, owner, rows in self.parts:
+            if kind == "flat":
+                _, d, idx = index.range_search(q, radius)
+            else:
+                d, idx = index.search(q, index.ntotal)
+                keep = (idx[0] >= 0) & ~(d[0] > bound)
+                d, idx = d[0][keep], idx[0][keep]
+            dist.append(np.asarray(d, np.float32))
+            sub.append(owner[idx])
+            row.append(rows[idx])
+        if not dist:
+            return _empty()
+        return np.concatenate(dist), np.concatenate(sub), np.concatenate(row)
+
+
 class SubmapPass:
     """The searches of one (1, dim) float32 query over ``submaps`` (a map's submap list), for
     top-``k`` rankings of any sets of them; see the module docstring."""
 
     def __init__(self, submaps: Sequence[Any], q: np.ndarray, k: int,
-                 rerank_factor: int) -> None:
+                 rerank_factor: int, small: SmallSubmaps | None = None) -> None:
         self.subs, self.q, self.k = submaps, q, int(k)
+        self.small = small if small is not None and small.parts else None
         self.factor = int(rerank_factor)
         self.kk = self.k * max(1, self.factor)
         self._exact: dict[int, tuple[np.ndarray, np.ndarray]] = {}
@@ -70,9 +173,16 @@ class SubmapPass:
     def rank(self, *sets: Sequence[int]) -> list[Hits]:
         """The top-``k`` of each set of submap indices, best first (ties by submap, row)."""
         plans = [self._plan(s) for s in sets]
-        picks = [self._pick(pq) for _, pq in plans]
-        self._rerank(picks)
-        return [self._merge(exact, pick) for (exact, _), pick in zip(plans, picks)]
+        with one_faiss_thread():
+            picks = [self._pick(pq) for _, pq in plans]
+            self._rerank(picks)
+            parts = [self._gather(exact, pick) for (exact, _), pick in zip(plans, picks)]
+            # the small submaps' pool: only rows that can still enter a ranking, i.e. not
+            # beyond the k-th distance a set has already (with ties: the bound is included)
+            bound = max((_kth(d, self.k) for (d, _, _), pooled in parts if pooled),
+                        default=None)
+            small = _empty() if bound is None else self.small.hits(self.q, bound)
+            return [self._with_small(hits, pooled, small) for hits, pooled in parts]
 
     def rank_with_global(self, region: Sequence[int]) -> Hits:
         """The region's top-``k`` and, merged in, the global top-``k`` hits the region's ranking
@@ -97,6 +207,7 @@ class SubmapPass:
         return [si for si in live if si not in pooled], pq
 
     def _exact_hits(self, si: int) -> tuple[np.ndarray, np.ndarray]:
+        """A flat/fp16 submap's top-``min(k, count)`` (FAISS's exact search)."""
         hit = self._exact.get(si)
         if hit is None:
             sub = self.subs[si]
@@ -144,9 +255,15 @@ class SubmapPass:
         order = np.argsort(self._keys)
         self._keys, self._dist = self._keys[order], self._dist[order]
 
-    def _merge(self, exact: list[int], pick: tuple[np.ndarray, np.ndarray]) -> Hits:
-        if not exact and not len(pick[0]):
-            return _empty()
+    def _gather(self, exact: list[int], pick: tuple[np.ndarray, np.ndarray]
+                ) -> tuple[Hits, list[int]]:
+        """(hits of a set's submaps searched alone and of its pq pool, its pooled submaps)."""
+        pooled: list[int] = []
+        if self.small is not None:
+            mask = self.small.pooled
+            pooled = [si for si in exact if mask[si]]
+            if pooled:
+                exact = [si for si in exact if not mask[si]]
         hits = [self._exact_hits(si) for si in exact]
         owner, rows = pick
         pq_dist = self._dist[np.searchsorted(self._keys, _key(owner, rows))]
@@ -154,4 +271,16 @@ class SubmapPass:
         sub = np.concatenate([np.repeat(np.array(exact, dtype=np.int64),
                                         [len(r) for _, r in hits]), owner])
         row = np.concatenate([r for _, r in hits] + [rows])
+        return (dist, sub, row), pooled
+
+    def _with_small(self, hits: Hits, pooled: list[int], small: Hits) -> Hits:
+        """A set's top-``k``: its own hits and its pooled submaps' rows."""
+        dist, sub, row = hits
+        if pooled:
+            wanted = np.zeros(len(self.subs), dtype=bool)
+            wanted[pooled] = True
+            keep = wanted[small[1]]
+            dist = np.concatenate([dist, small[0][keep]])
+            sub = np.concatenate([sub, small[1][keep]])
+            row = np.concatenate([row, small[2][keep]])
         return top_k(dist, sub, row, self.k)

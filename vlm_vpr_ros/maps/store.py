@@ -160,6 +160,7 @@ class LazySubmap:
         self._sizes = {rel: int(files_meta[rel]["bytes"]) for rel in self.files.values()}
         self._inodes: dict[str, tuple[int, int]] = {}
         self._stat_paths: list[tuple[str, str, int, str]] | None = None  # role, rel, bytes, path
+        self._prefetch_at: dict[str, tuple[str, int, int]] | None = None  # see prefetch()
         self._lock = threading.Lock()
         self._open: tuple[Any, np.ndarray, IdView, np.ndarray | None] | None = None
         self._coords: np.ndarray | None = None  # mapped without opening the index
@@ -281,18 +282,17 @@ class LazySubmap:
     def prefetch(self, rows: np.ndarray, what: tuple[str, ...] = ("vectors",)) -> None:
         """Start reading these rows of the memory-mapped files in ``what`` (roles: vectors,
         coords, ids) in the background; the next access then finds them in the page cache."""
-        opened = self.opened()
-        arrays = {"coords": opened[1], "ids": opened[2]._raw, "vectors": opened[3]}
+        if self._prefetch_at is None:  # (path, row bytes, data offset) per role, once: a
+            opened = self.opened()  # stat and a path join per call cost more than the advice
+            arrays = {"coords": opened[1], "ids": opened[2]._raw, "vectors": opened[3]}
+            self._prefetch_at = {
+                role: (os.fspath(self.root / rel), arr.strides[0],
+                       self._sizes[rel] - arr.nbytes)  # data to the end (npy_data_offset)
+                for role, rel in self.files.items() if (arr := arrays.get(role)) is not None}
         for role in what:
-            rel = self.files.get(role)
-            arr = arrays.get(role)
-            if rel is not None and arr is not None:
-                path = self.root / rel
-                try:
-                    offset = npy_data_offset(path, arr)
-                except OSError:
-                    continue  # the search reports a missing file
-                prefetch_rows(path, arr.strides[0], rows, offset)
+            at = self._prefetch_at.get(role)
+            if at is not None:
+                prefetch_rows(at[0], at[1], rows, at[2])
 
     def vectors(self) -> np.ndarray:
         index, _, _, rerank = self.opened()
@@ -320,7 +320,7 @@ def _load_array(root: Path, rel: str, shape: tuple[int, ...], kind: str) -> np.n
     return arr
 
 
-def prefetch_rows(path: Path, row_bytes: int, rows: np.ndarray, offset: int) -> None:
+def prefetch_rows(path: Path | str, row_bytes: int, rows: np.ndarray, offset: int) -> None:
     """Ask the kernel to read rows ``rows`` (``row_bytes`` each, data at ``offset``) of the file
     at ``path`` now: ``posix_fadvise(WILLNEED)`` per row queues the reads without waiting, so a
     cold query then waits for about one round of disk reads, not one read per page fault in
