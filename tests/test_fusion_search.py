@@ -164,9 +164,15 @@ def test_pooled_small_submaps_give_each_submaps_own_distances(kind, monkeypatch)
             want_d, want_r = subs[si].search(q, subs[si].count, 1)
             got = dict(zip(r[s == si].tolist(), d[s == si].tolist()))
             assert got == dict(zip(want_r.tolist(), want_d.tolist()))
-    monkeypatch.setattr(search, "POOL_MAX_BYTES", (1 + 5 + 17) * 128 * 4)
+    monkeypatch.setattr(search, "POOL_MAX_BYTES", (1 + 5 + 17) * 128 * (4 if kind == "flat"
+                                                                         else 2))
     small = search.SmallSubmaps(subs)
     assert small.pooled.tolist() == [True, True, False, False, False, False, True]
+    if kind == "fp16":  # fp16 is searched for all its rows: a cap in references too
+        monkeypatch.setattr(search, "POOL_MAX_BYTES", 2 ** 30)
+        monkeypatch.setattr(search, "POOL_MAX_FP16_REFS", 1 + 5 + 17)
+        assert search.SmallSubmaps(subs).pooled.tolist() == [True, True, False, False, False,
+                                                             False, True]
 
 
 def test_rerank_distances_equal_faiss_fp16_decoder_bit_for_bit():

@@ -56,6 +56,7 @@ _ROW_BITS = 40  # (submap, row) packed in one int64 key: rows < 2**40, submaps <
 #: submaps of at most this many references are scanned together (module docstring)
 POOL_MAX_REFS = 1024
 POOL_MAX_BYTES = 64 * 2 ** 20  # the pooled copy's size limit (smallest submaps first)
+POOL_MAX_FP16_REFS = 8192  # fp16 is searched for all its rows: a heap that grows with them
 
 
 def _empty() -> Hits:
@@ -103,6 +104,12 @@ def top_k(dist: np.ndarray, submap: np.ndarray, row: np.ndarray, k: int) -> Hits
     return dist[order], submap[order], row[order]
 
 
+def _dim_of(sub: Any) -> int:
+    """A submap's descriptor size, without opening a lazily opened submap."""
+    dim = getattr(sub, "dim", None)
+    return int(dim) if dim is not None else int(sub.index.d)
+
+
 class SmallSubmaps:
     """The small flat/fp16 submaps of a submap list, copied into one FAISS index per kind."""
 
@@ -112,13 +119,16 @@ class SmallSubmaps:
         self.parts: list[tuple[str, Any, np.ndarray, np.ndarray]] = []
         small = sorted((s.count, i) for i, s in enumerate(submaps)
                        if s.kind in ("flat", "fp16") and 0 < s.count <= POOL_MAX_REFS)
-        budget, members = POOL_MAX_BYTES, {"flat": [], "fp16": []}
+        budget, fp16_refs = POOL_MAX_BYTES, 0
+        members: dict[str, list[tuple[int, np.ndarray]]] = {"flat": [], "fp16": []}
         for n, i in small:
-            vecs = submaps[i].vectors()  # float32 (fp16: decoded exactly)
-            budget -= vecs.nbytes // (1 if submaps[i].kind == "flat" else 2)
+            kind = submaps[i].kind
+            fp16_refs += n if kind == "fp16" else 0
+            budget -= n * _dim_of(submaps[i]) * (4 if kind == "flat" else 2)
             if budget < 0:
                 break
-            members[submaps[i].kind].append((i, vecs))
+            if kind == "flat" or fp16_refs <= POOL_MAX_FP16_REFS:
+                members[kind].append((i, submaps[i].vectors()))  # float32 (fp16: exact)
         for kind, got in members.items():
             if len(got) < 2:
                 continue  # one submap: nothing to save
