@@ -175,23 +175,23 @@ def test_pooled_small_submaps_give_each_submaps_own_distances(kind, monkeypatch)
                                                              False, True]
 
 
-def test_rerank_distances_equal_faiss_fp16_decoder_bit_for_bit():
-    """The pq re-rank casts fp16 with numpy (no OpenMP team per query): the same float32
-    distances as FAISS's fp16 decoder that it replaced, for odd and even dims."""
-    import faiss
-
+def test_rerank_distances_are_exact_float32_distances_to_the_fp16_vectors():
+    """The pq re-rank (FAISS's fp16 decoder, on one OpenMP thread in a query) gives the exact
+    float32 distances to the fp16 vectors, bit for bit, for odd and even dims."""
     from vlm_vpr_ros.maps.indexes import exact_sq_l2
+    from vlm_vpr_ros.maps.search import one_faiss_thread
 
     rng = np.random.default_rng(7)
     for dim in (24, 33, 512):
         half = (rng.normal(size=(300, dim)) * rng.uniform(0.01, 100)).astype(np.float16)
         rows = np.sort(rng.choice(300, 120, replace=False))
         q = rng.normal(size=(1, dim)).astype(np.float32)
-        codec = faiss.ScalarQuantizer(dim, faiss.ScalarQuantizer.QT_fp16)
-        want = codec.decode(np.ascontiguousarray(half[rows]).view(np.uint8)) - q
+        want = half[rows].astype(np.float32) - q  # fp16 -> float32 is exact
         want = np.einsum("ij,ij->i", want, want)
-        got = exact_sq_l2(half, rows, q)
+        with one_faiss_thread():
+            got = exact_sq_l2(half, rows, q)
         assert got.dtype == np.float32 and np.array_equal(got, want)
+        assert np.array_equal(exact_sq_l2(half, rows, q), want)
 
 
 def test_one_faiss_thread_is_per_thread_and_restored(maps):

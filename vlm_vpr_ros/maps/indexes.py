@@ -13,6 +13,7 @@ One PQ codebook is trained per map on a sample of all references and shared by e
 
 from __future__ import annotations
 
+import functools
 import logging
 from typing import Any
 
@@ -156,14 +157,24 @@ def pq_candidates(index: Any, q: np.ndarray, kk: int) -> tuple[np.ndarray, np.nd
 
 def exact_sq_l2(rerank: np.ndarray, rows: np.ndarray, q: np.ndarray) -> np.ndarray:
     """Stage 2: exact squared L2 of ``q`` to the fp16 re-rank vectors of ``rows`` (ascending
-    rows read the memory-mapped file in order): numpy's SIMD fp16 cast (exact: every fp16 value
-    is a float32) and one in-place difference. Not FAISS's fp16 decoder: it runs an OpenMP team
-    per call, and waking it costs a scheduler round on a busy machine — measured 32 ms instead
-    of 0.6 ms for an 800-row re-rank on this 2-core machine at load 10 (0.5 ms single-threaded;
-    same distances, bit for bit)."""
-    vecs = np.asarray(rerank[rows]).astype(np.float32)
+    rows read the memory-mapped file in order). FAISS's SIMD fp16 decoder (exact: every fp16
+    value is a float32) and one in-place difference: numpy's fp16 cast costs 1.5x more. The
+    decoder runs an OpenMP team: a query's search calls it on one thread
+    (:func:`vlm_vpr_ros.maps.search.one_faiss_thread`), as waking the team on a busy machine
+    costs more than the decode (32 ms instead of 0.6 ms at load 10 on this 2-core machine)."""
+    half = np.ascontiguousarray(rerank[rows])
+    if not len(half):
+        return np.zeros(0, np.float32)
+    vecs = _fp16_codec(half.shape[1]).decode(half.view(np.uint8))
     vecs -= q
     return np.einsum("ij,ij->i", vecs, vecs)
+
+
+@functools.lru_cache(maxsize=8)
+def _fp16_codec(dim: int) -> Any:
+    import faiss
+
+    return faiss.ScalarQuantizer(dim, faiss.ScalarQuantizer.QT_fp16)
 
 
 def vectors(index: Any, kind: str, rerank: np.ndarray | None) -> np.ndarray:
