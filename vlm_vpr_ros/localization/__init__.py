@@ -1,0 +1,1 @@
+"""Localization: from a query to an answer (retrieval, fusion, verification)."""
