@@ -31,8 +31,7 @@ from vlm_vpr_ros.localization.verification.calibration import (PCorrect, load_do
                                                                verified_radius)
 from vlm_vpr_ros.localization.verification.evidence import EvidenceConfig, weigh
 from vlm_vpr_ros.localization.verification.geometry import GeometryConfig, fundamental_inliers
-from vlm_vpr_ros.localization.verification.presets import (VerifierPreset, get_preset,
-                                                           preset_for_map)
+from vlm_vpr_ros.localization.verification.presets import preset_for_map
 from vlm_vpr_ros.maps.features import FeatureStore
 from vlm_vpr_ros.config import from_mapping
 from vlm_vpr_ros.types import Hypothesis, LocalFeatures
