@@ -7,7 +7,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from vlm_vpr_ros.imageio import check_rgb
+from vlm_vpr_ros.files.images import check_rgb
 
 
 def gray_frame(image: np.ndarray, max_side: int) -> tuple[np.ndarray, float]:

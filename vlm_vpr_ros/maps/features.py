@@ -36,6 +36,8 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 import numpy as np
 
 from vlm_vpr_ros.errors import MapError
+from vlm_vpr_ros.files.atomic import atomic_write_json
+from vlm_vpr_ros.maps.format import MANIFEST, file_table
 from vlm_vpr_ros.types import LocalFeatures
 
 log = logging.getLogger(__name__)
@@ -139,9 +141,6 @@ def attach_features(map_dir: Path, manifest: dict, by_submap: Mapping[str, Itera
     """Write the feature files of a saved map (``by_submap[id]``: features in the submap's row
     order), list them in ``files``, add the section and rewrite the manifest (last). Returns the
     new manifest."""
-    from vlm_vpr_ros.map_io import MANIFEST, atomic_write_json
-    from vlm_vpr_ros.maps.store import file_table
-
     dtype = np.dtype(feature_identity["dtype"])
     dim = int(feature_identity["descriptor_dim"])
     entries, rels = {}, []

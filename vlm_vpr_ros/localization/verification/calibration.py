@@ -35,8 +35,10 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 
 from vlm_vpr_ros.errors import MapError
+from vlm_vpr_ros.files.atomic import atomic_write_json
 from vlm_vpr_ros.geodesy import EARTH_RADIUS_KM, haversine_km, latlon_to_unit
 from vlm_vpr_ros.localization.verification.evidence import EvidenceConfig, weigh
+from vlm_vpr_ros.maps.format import MANIFEST, checked_file, file_table
 from vlm_vpr_ros.types import LocalFeatures
 
 log = logging.getLogger(__name__)
@@ -193,9 +195,7 @@ def load_doc(ref_map: Any) -> dict[str, Any] | None:
         log.warning("%s: %s is not listed in the manifest; verification is uncalibrated",
                     ref_map.path, rel)
         return None
-    from vlm_vpr_ros.map_validate import _file
-
-    p = _file(Path(ref_map.path), ref_map.manifest, rel, True)
+    p = checked_file(Path(ref_map.path), ref_map.manifest, rel, True)
     try:
         doc = json.loads(p.read_text(encoding="utf-8"))
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
@@ -205,8 +205,6 @@ def load_doc(ref_map: Any) -> dict[str, Any] | None:
 
 def save_doc(ref_map: Any, doc: Mapping[str, Any]) -> Path:
     """Write ``verification.json`` into a saved map and list it in the manifest (last)."""
-    from vlm_vpr_ros.map_io import MANIFEST, atomic_write_json, sha256_file
-
     if ref_map.path is None:
         raise MapError("save the map before writing its verification calibration")
     path = Path(ref_map.path)
@@ -215,7 +213,7 @@ def save_doc(ref_map: Any, doc: Mapping[str, Any]) -> Path:
     atomic_write_json(p, dict(doc))
     manifest = dict(ref_map.manifest)
     files = dict(manifest.get("files", {}))
-    files[VERIFY_CAL_FILE] = {"bytes": p.stat().st_size, "sha256": sha256_file(p)}
+    files.update(file_table(path, [VERIFY_CAL_FILE]))
     manifest["files"], manifest["verification_calibration"] = files, VERIFY_CAL_FILE
     atomic_write_json(path / MANIFEST, manifest)
     ref_map.manifest = manifest

@@ -109,7 +109,7 @@ class DiskFeature(LocalFeatureExtractor):
     def extract(self, image: np.ndarray, max_keypoints: int) -> LocalFeatures:
         import cv2
 
-        from vlm_vpr_ros.imageio import check_rgb
+        from vlm_vpr_ros.files.images import check_rgb
 
         torch = self._torch
         rgb = check_rgb(image)

@@ -177,7 +177,7 @@ class Verifier:
         return [self._from_image(c.ref_id) for c in candidates]
 
     def _from_image(self, ref_id: str) -> LocalFeatures | None:
-        from vlm_vpr_ros.imageio import load_image
+        from vlm_vpr_ros.files.images import load_image
 
         with self._lock:
             if ref_id in self._cache:
