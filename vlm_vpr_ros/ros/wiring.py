@@ -120,10 +120,13 @@ class _Wiring:
         self.pipeline = LocalizationPipeline.open(
             os.path.expanduser(cfg.map_dir), descriptor=cfg.descriptor or None,
             localizer=cfg.localizer_config(), descriptor_config=cfg.descriptor_options,
-            verify=cfg.verify_map)
+            verify=cfg.verify_map, verification=cfg.verification_config(),
+            status=cfg.status_policy())
         self._provider = create_prior_provider(cfg.prior_provider, cfg.prior)
         self.policy = FixPolicy(cfg.fallback_status, cfg.fallback_min_sigma_m, cfg.altitude_m,
-                                cfg.altitude_sigma_m, cfg.fix_max_sigma_m)
+                                cfg.altitude_sigma_m, cfg.fix_max_sigma_m,
+                                cfg.fix_min_p_correct, cfg.trust_prior_for_fix,
+                                cfg.trust_operator_prior)
         self._flag_log = Throttle(10.0)
         self._stats = RuntimeStats(self._provider.name, cfg.mode)
         self.fix_pub = make_publisher(NavSatFix, "fix", 10)
@@ -270,6 +273,8 @@ class _Wiring:
         pipe = runtime.pipeline if runtime is not None else self.pipeline
         values = {"map_dir": self.cfg.map_dir, "descriptor": pipe.descriptor.name,
                   "fusion": self.cfg.fusion, "calibration": pipe.localizer.calibration_source,
+                  "verification": pipe.verifier.unavailable or "on, p_correct calibrated by "
+                  + pipe.verifier.calibration_source,
                   "map_references": pipe.map.n_references,
                   "map_generation": pipe.map.manifest.get("generation", 0), **values}
         self.diag_pub.publish(diagnostic_array(

@@ -21,6 +21,8 @@ from typing import Any, Mapping
 from vlm_vpr_ros.errors import ConfigError
 from vlm_vpr_ros.geodesy import MAX_DISTANCE_KM
 from vlm_vpr_ros.localization.localizer import FUSION_MODES, LocalizerConfig
+from vlm_vpr_ros.localization.verification.stage import VerificationConfig
+from vlm_vpr_ros.localization.verification.status import StatusPolicy
 
 MODES = ("continuous", "on_trigger")
 QOS_CHOICES = ("sensor_data", "best_effort", "reliable")
@@ -89,13 +91,27 @@ class NodeConfig:
     max_frame_age_s: float = _p(2.0, "relocalize uses the latest frame if received within "
                                      "this many seconds (node clock), else the next frame",
                                 0.001, 86400.0)
+    verify_top_k: int = _p(20, "candidates verified with local features + geometry per query "
+                               "(0 = off: every answer unverified, STATUS_NO_FIX)", 0, 1000)
+    verification_required: bool = _p(False, "a map without usable local features (and no "
+                                            "reference_images_dir) fails configure; false: "
+                                            "a warning and unverified answers")
+    reference_images_dir: str = _p("", "reference images folder, for maps that store no local "
+                                       "features (verified from the images; '' = none)")
+    fix_min_p_correct: float = _p(0.95, "STATUS_FIX only when the verified answer's p_correct "
+                                        "(calibrated probability of being within 25 m) is at "
+                                        "least this", 0.5, 1.0)
     fix_max_sigma_m: float = _p(50.0, "STATUS_FIX only when the fix's calibrated per-axis "
                                       "sigma is at most this (m); else STATUS_NO_FIX", 0.001,
                                 MAX_SIGMA_M)
-    fallback_status: str = _p("no_fix", "NavSatFix status of fixes whose sigma exceeds "
-                                        "fix_max_sigma_m: no_fix or fix",
+    trust_prior_for_fix: bool = _p(False, "an answer decisive only because the prior removed "
+                                          "far look-alikes (prior_resolved) may be STATUS_FIX")
+    trust_operator_prior: bool = _p(False, "... only when the prior carries its own sigma_km "
+                                           "(an operator's hint: the fixed provider)")
+    fallback_status: str = _p("no_fix", "NavSatFix status of answers failing the status rule "
+                                        "(docs/verification.md): no_fix or fix",
                               choices=FALLBACK_STATUS)
-    fallback_min_sigma_m: float = _p(0.0, "least 1-sigma of a fix exceeding fix_max_sigma_m "
+    fallback_min_sigma_m: float = _p(0.0, "least 1-sigma of an answer failing the status rule "
                                           "(m; 0 = its calibrated sigma)", 0.0, MAX_SIGMA_M)
     altitude_m: float = _p(0.0, "altitude published in the fix (images give none)",
                            -11000.0, 100000.0)
@@ -107,6 +123,14 @@ class NodeConfig:
     prior: dict = field(default_factory=dict, metadata={"doc": "prior provider settings"})
     descriptor_options: dict = field(default_factory=dict,
                                      metadata={"doc": "descriptor settings (device, weights)"})
+
+    def verification_config(self) -> VerificationConfig:
+        return VerificationConfig(self.verify_top_k, self.verification_required,
+                                  os.path.expanduser(self.reference_images_dir))
+
+    def status_policy(self) -> StatusPolicy:
+        return StatusPolicy(self.fix_min_p_correct, self.fix_max_sigma_m,
+                            self.trust_prior_for_fix, self.trust_operator_prior)
 
     def localizer_config(self) -> LocalizerConfig:
         return LocalizerConfig(top_p=self.top_p, fusion=self.fusion,
@@ -190,6 +214,9 @@ def validate(cfg: NodeConfig) -> None:
     _require(cfg.subscribe_raw or cfg.subscribe_compressed,
              "subscribe_raw and subscribe_compressed are both false: nothing to localize")
     cfg.localizer_config()  # raises ConfigError on top_p/n_submaps < 1, unknown fusion
+    _require(not cfg.reference_images_dir or os.path.isdir(os.path.expanduser(
+        cfg.reference_images_dir)), f"parameter 'reference_images_dir': "
+        f"{cfg.reference_images_dir!r} is not a folder")
     for spec in PARAMETER_SPECS.values():  # the declared ranges (after the specific checks)
         v = getattr(cfg, spec.name)
         if spec.range is not None:

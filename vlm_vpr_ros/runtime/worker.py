@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import logging
+import math
 import threading
 import time
 from dataclasses import dataclass, field
@@ -28,6 +29,7 @@ import numpy as np
 
 from vlm_vpr_ros.errors import ConfigError, ImageDecodeError, VlmVprError
 from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
+from vlm_vpr_ros.localization.verification.status import horizontal_sigma
 from vlm_vpr_ros.priors.base import PriorProvider, PriorQuery, PriorResult
 from vlm_vpr_ros.runtime.stats import RuntimeStats, Throttle
 from vlm_vpr_ros.types import Hypothesis
@@ -283,7 +285,7 @@ class QueryRuntime:
         future = self._request_prior(PriorQuery(image=rgb, encoded=encoded, key=frame.key))
         pipe = self.pipeline  # one map for the whole query, even if reload_map() swaps it now
         try:
-            desc = pipe.describe(rgb)
+            query = pipe.describe_query(rgb)  # + local features for verification
         except VlmVprError as exc:
             future.cancel()
             out.error = f"descriptor failed: {exc}"
@@ -292,7 +294,7 @@ class QueryRuntime:
         prior = self._await_prior(future, t1)
         t3 = time.monotonic()
         try:
-            hyp = pipe.localize_descriptor(desc, prior)
+            hyp = pipe.localize_descriptor(query.desc, prior, query.local)
         except VlmVprError as exc:  # e.g. a map file truncated after start (maps/store.py)
             out.error = f"localization failed: {exc}"
             return
@@ -349,8 +351,11 @@ def outcome_summary(outcome: QueryOutcome | None, waited_s: float) -> tuple[bool
     else:
         prior = f"no prior ({pr.reason if pr else 'none'}): global retrieval"
     flag = f" FLAGGED [{'|'.join(h.flags)}]" if h.flagged else ""
+    status = "STATUS_FIX" if h.status == "fix" else f"NO_FIX ({h.status_reason or 'unverified'})"
+    p = "" if math.isnan(h.p_correct) else f"p_correct {h.p_correct:.3f}, "
     took = outcome.finished - outcome.started
     what = "relocalized frame" if outcome.trigger == "relocalize" else "fix for frame"
     return True, (f"{what} {frame.key}: lat {h.lat:.6f}, lon {h.lon:.6f}, "
-                  f"sigma {h.uncertainty_m:.0f} m, reference {h.ref_id}, submap {h.submap}, "
+                  f"{status}, sigma {horizontal_sigma(h):.0f} m, {p}"
+                  f"reference {h.ref_id}, submap {h.submap}, "
                   f"{prior}, {len(h.candidates)} candidates, {took:.2f} s{flag}")
