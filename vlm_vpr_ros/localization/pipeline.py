@@ -48,6 +48,20 @@ def apply_status(hyp: Hypothesis, policy: StatusPolicy) -> Hypothesis:
     return hyp
 
 
+def verify_and_stamp(hyp: Hypothesis, local: LocalFeatures | None, verifier: Verifier | None,
+                     localizer: Localizer, policy: StatusPolicy) -> Hypothesis:
+    """Verify ``hyp`` with the query's ``local`` features (when there is a verifier), then stamp
+    its status under ``policy``."""
+    if verifier is not None and hyp.candidates:
+        model = localizer.error_model_for(hyp.prior) if hyp.prior is not None else None
+        verifier.verify(hyp, local, model, trust_prior=policy.trusts(hyp),
+                        level=policy.fix_min_p_correct)
+    elif "unverified" not in hyp.flags:
+        hyp.flags = tuple(hyp.flags) + ("unverified",)
+        hyp.verification = hyp.verification or "unverified: verification off"
+    return apply_status(hyp, policy)
+
+
 class LocalizationPipeline:
     """Bundle of map, descriptor, localizer and verifier used by the CLI, the node and the
     evaluators."""
@@ -142,16 +156,7 @@ class LocalizationPipeline:
 
     def finish(self, hyp: Hypothesis, local: LocalFeatures | None) -> Hypothesis:
         """Verification (when configured) and the status of a localized hypothesis."""
-        v = self.verifier
-        if v is not None and hyp.candidates:
-            model = (self.localizer.error_model_for(hyp.prior) if hyp.prior is not None
-                     else None)
-            v.verify(hyp, local, model, trust_prior=self.status_policy.trusts(hyp),
-                     level=self.status_policy.fix_min_p_correct)
-        elif "unverified" not in hyp.flags:
-            hyp.flags = tuple(hyp.flags) + ("unverified",)
-            hyp.verification = hyp.verification or "unverified: verification off"
-        return apply_status(hyp, self.status_policy)
+        return verify_and_stamp(hyp, local, self.verifier, self.localizer, self.status_policy)
 
     def localize_image(self, image: np.ndarray,
                        prior_result: PriorResult | None = None) -> Hypothesis:

@@ -189,6 +189,8 @@ def _build_staged(images_dir: Any, rows, desc: GlobalDescriptor, stage: StagedOu
     t0 = time.monotonic()
     if engine is not None:
         feats, ok = engine.describe(desc, images_dir, rows, work, progress)
+        if refx is not None and refx.enabled:
+            _extract_local(refx, images_dir, rows, work, progress, ok)
     else:
         if desc.needs_fit:
             _fit(desc, images_dir, rows, work, progress)
@@ -330,6 +332,34 @@ def _extract(desc: GlobalDescriptor, root: Path, rows, work: Path, progress: boo
     if bar is not None:
         bar.close()
     return feats, ok
+
+
+def _extract_local(refx: Any, images_dir: Any, rows, work: Path, progress: bool,
+                   ok: np.ndarray) -> None:
+    """Local features of the described rows, in this process, in the same resumable chunk
+    files as :func:`_extract` (builds whose descriptors came from an engine)."""
+    from vlm_vpr_ros.distributed.sources import ImageSource
+    from vlm_vpr_ros.maps.features import feature_files, write_submap_features
+
+    source = ImageSource(str(images_dir))
+    x, empty = refx.extractor, _empty_features(refx)
+    bar = _progress(None, len(rows), "local features", progress) if progress else None
+    for s in range(0, len(rows), CHUNK):
+        e, stem = min(len(rows), s + CHUNK), f"chunk_{s:08d}"
+        if not all((work / r).exists() for r in feature_files(stem).values()):
+            feats = []
+            for i in range(s, e):
+                try:
+                    feats.append(x.extract(source.load(rows[i][0]), refx.preset.max_keypoints)
+                                 if ok[i] else empty)
+                except ImageDecodeError as exc:  # read by the engine, not here: a change
+                    raise MapError(f"reference {rows[i][0]} became unreadable during the "
+                                   f"build: {exc}") from None
+            write_submap_features(work, stem, feats, x.descriptor_dtype, x.descriptor_dim)
+        if bar is not None:
+            bar.update(e - s)
+    if bar is not None:
+        bar.close()
 
 
 def _empty_features(refx: Any):

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
@@ -175,3 +176,50 @@ def calibrate_map(ref_map: Any, max_queries: int = LOO_QUERIES, top_k: int = 20,
     log.info("verification calibration: %d leave-one-out queries (%d wrong, %d right), "
              "%.1f s", loo["queries"], loo["wrong"], loo["right"], time.monotonic() - t0)
     return doc
+
+
+def edit_features(tx: Any, ref_map: Any, gen: int,
+                  rewritten: Mapping[str, Sequence[LocalFeatures]],
+                  dropped: Sequence[str]) -> None:
+    """``map add/remove`` inside its transaction ``tx``: write the feature files of every
+    rewritten submap under the generation's names (``<id>.g<gen>``), drop those of emptied
+    submaps, and update the manifest's ``local_features`` section in ``tx.new``."""
+    from vlm_vpr_ros.maps.features import make_section, write_submap_features
+
+    sec = tx.new.get("local_features")
+    if not sec:
+        return
+    dtype, dim = np.dtype(sec["feature"]["dtype"]), int(sec["feature"]["descriptor_dim"])
+    entries = dict(sec["submaps"])
+    for sid in [*rewritten, *dropped]:
+        for rel in (entries.get(sid) or {}).get("files", {}).values():
+            tx.new["files"].pop(rel, None)
+    for sid in dropped:
+        entries.pop(sid, None)
+    for sid, feats in rewritten.items():
+        entries[sid] = write_submap_features(Path(tx.path), f"{sid}.g{gen}", feats, dtype, dim)
+        for rel in entries[sid]["files"].values():
+            tx.record(rel)
+    tx.new["local_features"] = make_section(sec["feature"], sec["preset"],
+                                            sec["max_keypoints"], sec["query_max_keypoints"],
+                                            entries, tx.new["files"])
+
+
+def map_extractor(ref_map: Any, descriptor: Any) -> ReferenceExtractor:
+    """The extractor of new references for a map with stored features: the map's own preset
+    and feature settings (MapError when this software would extract other features)."""
+    sec = ref_map.manifest.get("local_features")
+    if not sec:
+        return ReferenceExtractor(descriptor, None)
+    refx = ReferenceExtractor(descriptor, sec.get("preset") or "sift",
+                              sec["feature"].get("config") or {})
+    refx.preset = replace(refx.preset, max_keypoints=int(sec["max_keypoints"]),
+                          query_max_keypoints=int(sec["query_max_keypoints"]))
+    mine, stored = refx.identity(), sec["feature"]
+    diff = [k for k in ("name", "config", "descriptor_dim", "dtype")
+            if mine.get(k) != stored.get(k)]
+    if diff:
+        raise MapError(f"{ref_map.path}: the map stores {stored.get('name')} features "
+                       f"{stored.get('config')}; new references would get {mine.get('config')} "
+                       f"(differs in {', '.join(diff)})")
+    return refx

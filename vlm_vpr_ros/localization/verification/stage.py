@@ -77,6 +77,7 @@ class Verifier:
             self.unavailable = "verification off (verify_top_k 0)"
             return
         root = Path(ref_map.path) if ref_map.path is not None else None
+        self.images_root = self._images_root(root)  # also for drawing (--save-matches)
         try:
             self.store = FeatureStore.open(root, ref_map.manifest) if root else None
         except MapError as exc:
@@ -93,7 +94,6 @@ class Verifier:
                                   max_keypoints=self.store.max_keypoints,
                                   query_max_keypoints=self.store.query_max_keypoints)
         else:
-            self.images_root = self._images_root(root)
             if self.images_root is None:
                 msg = ("the map stores no local features and no reference images folder is "
                        "reachable (give images_dir / --reference-images)")
