@@ -300,5 +300,5 @@ class FeatureStore:
             subs[s["id"]] = sub = _SubmapFeatures(root, e, {r: files[r]["bytes"]
                                                             for r in e["files"].values()},
                                                   dtype, dim)
-            sub.check()
+            sub.arrays()  # sizes, shapes and dtypes now: one clear error at open
         return cls(root, sec, subs)

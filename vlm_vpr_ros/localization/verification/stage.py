@@ -22,7 +22,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from vlm_vpr_ros.errors import ConfigError, ImageDecodeError, MapError
+from vlm_vpr_ros.errors import ConfigError, DescriptorError, ImageDecodeError, MapError
 from vlm_vpr_ros.geodesy import haversine_km
 from vlm_vpr_ros.localization.verification.base import (LocalFeatureExtractor, Matcher,
                                                         create_feature, create_matcher,
@@ -105,7 +105,14 @@ class Verifier:
             self.preset = preset_for_map("sift", ref_map.descriptor_identity)
             log.info("%s stores no local features: verifying against the images in %s",
                      root, self.images_root)
-        self._build(dict(feature_options or {}), dict(matcher_options or {}))
+        try:
+            self._build(dict(feature_options or {}), dict(matcher_options or {}))
+        except (MapError, ConfigError, DescriptorError) as exc:
+            msg = f"{root}: local features unusable: {exc}"
+            if config.required:
+                raise MapError(msg) from None
+            log.warning("%s; answers are unverified", msg)
+            self.unavailable = msg
 
     def _build(self, feature_options: dict, matcher_options: dict) -> None:
         p = self.preset
