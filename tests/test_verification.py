@@ -137,6 +137,11 @@ def test_p_correct_is_the_conformal_bound_of_wrong_answers():
     fresh = RNG.gamma(2.0, 1.0, 20_000)
     rate = np.mean([model.p_correct(s) >= 0.95 for s in fresh])
     assert rate <= 0.05 + 0.01
+    # a near tie (ratio < 2: another place holds half the evidence) is capped at r / (1 + r),
+    # whatever the map's wrong answers look like
+    low = PCorrect(np.full(100, 0.1))
+    assert low.p_correct(1.5) == pytest.approx(0.6) and low.p_correct(2.0) == pytest.approx(
+        1 - 1 / 101)
     # fewer than 19 wrong answers can never support a 0.95 fix; no calibration: NaN
     assert PCorrect(np.arange(18.0)).p_correct(1e9) < 0.95
     assert math.isnan(PCorrect(np.zeros(0)).p_correct(10.0))

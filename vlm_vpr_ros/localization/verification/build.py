@@ -34,7 +34,7 @@ log = logging.getLogger(__name__)
 #: "none": build a map without local features (answers unverified unless images are given)
 NO_FEATURES = ("none", "")
 #: leave-one-out queries at build time (bounds the build cost: ~20 matches each)
-LOO_QUERIES = 150
+LOO_QUERIES = 400
 
 
 class ReferenceExtractor:

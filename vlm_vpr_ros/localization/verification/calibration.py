@@ -46,7 +46,10 @@ log = logging.getLogger(__name__)
 VERIFY_CAL_FILE = "verification.json"
 VERIFY_CAL_FORMAT = "vlm_vpr_ros.verification_calibration"
 VERIFY_CAL_VERSION = 1
-DUPLICATE_SQ = 1e-4  # as fusion.calibration: copies of one image are not matches
+#: below this inlier ratio another place holds at least half the winner's evidence: the
+#: answer is a near tie, and p_correct is capped at ratio / (1 + ratio) (<= 2/3) whatever the
+#: map's wrong answers look like (a sparse map's leave-one-out has few strong look-alikes)
+AMBIGUOUS_RATIO = 2.0
 
 
 @dataclass
@@ -66,7 +69,10 @@ class PCorrect:
         if n == 0 or not math.isfinite(score):
             return math.nan
         above = n - int(np.searchsorted(self.null_scores, score, side="left"))
-        return 1.0 - (1.0 + above) / (1.0 + n)
+        p = 1.0 - (1.0 + above) / (1.0 + n)
+        if score < AMBIGUOUS_RATIO:  # another place holds half the winner's evidence or more
+            p = min(p, score / (1.0 + score))
+        return p
 
     def place_quantile(self, q: float) -> float:
         """Radius (m) holding fraction ``q`` of right answers' errors: uniform over the place
@@ -139,7 +145,9 @@ def loo_calibration(coords: np.ndarray, search: Callable[[int, int], list[tuple[
         else np.zeros(0, np.int64)
     wrong, right_err = [], []
     for done, qi in enumerate(rows.tolist()):
-        found = [(d, j) for d, j in search(qi, top_k + 8) if j != qi and d > DUPLICATE_SQ]
+        # only the query itself is left out: a copy of its image elsewhere in the map (a
+        # re-upload at another position, a look-alike) is what real queries meet too
+        found = [(d, j) for d, j in search(qi, top_k + 1) if j != qi]
         cand = [j for _, j in found[:top_k]]
         if cand:
             inl = inliers_of(features_of(qi), [features_of(j) for j in cand])
