@@ -220,8 +220,8 @@ def _twin_verified(twin, base, sf_described, priors, fused_hits, shift):
         assert wrong == 0
     assert rows["priors 0-25 km off"][0] >= fused_hits - 1
     assert rows["priors on the wrong continent"][1] == 0
-    assert ReferenceMap.load(twin.path).manifest["local_features"]["bytes"] == \
-        2 * base.manifest["local_features"]["bytes"]
+    assert ReferenceMap.load(twin.path).manifest["local_features"]["n_keypoints"] == \
+        2 * base.manifest["local_features"]["n_keypoints"]
 
 
 # -- verified fixes (issue 18, docs/verification.md) ----------------------------------------------
