@@ -245,3 +245,37 @@ def test_cli_results_evaluate_and_save_matches(demo_map, demo_data, tmp_path, ca
     wrong = {f for f, r in got.items() if err_m(float(r["lat"]), float(r["lon"]), f) > 25}
     names = {p.name for p in out2.iterdir()} if out2.exists() else set()
     assert "black.jpg" in wrong and names <= {f"{f}.jpg" for f in wrong}
+
+
+def test_calibrate_adds_the_users_wrong_answers(demo_map, demo_data, tmp_path):
+    """``vlm-vpr calibrate``: the inlier ratios of labelled answers more than 25 m off join the
+    map's leave-one-out wrong answers; p_correct then rests on both."""
+    from vlm_vpr_ros.cli import main
+    from vlm_vpr_ros.localization.verification.calibration import PCorrect, load_doc
+
+    m = copy_map(demo_map, tmp_path / "m")
+    rows = list(csv.DictReader(open(demo_data / "coords.csv")))[:12]
+    gt = tmp_path / "gt.csv"  # half of the labels moved 1 km: those answers are wrong
+    gt.write_text("file,lat,lon\n" + "".join(
+        f"{r['file']},{float(r['lat']) + (0.009 if i % 2 else 0.0)},{r['lon']}\n"
+        for i, r in enumerate(rows)))
+    res = tmp_path / "res.csv"
+    assert main(["localize", "--map", str(m), "--images", str(demo_data / "images"),
+                 "--queries", str(gt), "--out", str(res)]) == 0
+    got = list(csv.DictReader(open(res)))
+    truth = {r["file"]: (float(r["lat"]), float(r["lon"])) for r in csv.DictReader(open(gt))}
+    wrong = sorted(round(float(r["inlier_ratio"]), 4) for r in got
+                   if haversine_km(float(r["lat"]), float(r["lon"]), *truth[r["file"]])
+                   * 1000 > 25)
+    assert len(wrong) >= 6
+    assert main(["calibrate", "--results", str(res), "--ground-truth", str(gt),
+                 "--map", str(m)]) == 0
+    doc = load_doc(ReferenceMap.load(m))
+    assert doc["user"]["null_scores"] == wrong and doc["user"]["queries"] == 12
+    model = PCorrect.from_doc(doc)
+    assert len(model.null_scores) == 71 + len(wrong) and "user (12 labelled" in model.source
+    # those wrong answers are copies of mapped images (high scores): an answer scoring like the
+    # 4th strongest of them was a fix before (p 1 - 1/72) and is none now (1 - 5/78)
+    before = PCorrect.from_doc({**doc, "user": None})
+    assert before.p_correct(wrong[-4]) == pytest.approx(1 - 1 / 72)
+    assert model.p_correct(wrong[-4]) == pytest.approx(1 - 5 / 78) and 1 - 5 / 78 < 0.95

@@ -169,6 +169,19 @@ def loo_calibration(coords: np.ndarray, search: Callable[[int, int], list[tuple[
                     "seconds": round(time.monotonic() - t0, 1)}}
 
 
+def with_user_negatives(doc: Mapping[str, Any] | None, scores: Sequence[float], queries: int,
+                        results: str) -> dict[str, Any]:
+    """``doc`` (or a new user-only calibration) with the scores of a user's wrong answers as
+    its ``user`` section (``vlm-vpr calibrate``: replaces an earlier user section)."""
+    new = dict(doc) if doc else {
+        "format": VERIFY_CAL_FORMAT, "version": VERIFY_CAL_VERSION, "place_radius_m": 25.0,
+        "competitor_floor": EvidenceConfig().competitor_floor, "top_k": 20,
+        "null_scores": [], "place_errors_m": [], "loo": {"queries": 0}}
+    new["user"] = {"null_scores": sorted(round(float(s), 4) for s in scores),
+                   "queries": int(queries), "results": results}
+    return validate(new, "verification calibration")
+
+
 # -- persistence ------------------------------------------------------------------------------
 def validate(doc: Any, where: str) -> dict[str, Any]:
     """Structure check; MapError naming the field."""
