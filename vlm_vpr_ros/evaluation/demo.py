@@ -90,7 +90,7 @@ def run_demo(out: str | Path, with_bag: bool = True) -> int:
         "posterior (default): prior+VPR": (*recorded, LocalizerConfig(fusion="posterior")),
     }
     print("[3/4] localizing the queries ...", flush=True)
-    table, coverage = {}, {}
+    table, coverage, fixes = {}, {}, {}
     for i, (name, spec) in enumerate(runs.items()):
         res = out / f"results_{i}.csv"
         if spec is None:  # the prior itself as the estimate
@@ -106,6 +106,7 @@ def run_demo(out: str | Path, with_bag: bool = True) -> int:
                              localize_files(pipe, provider, out / "queries", files))
         table[name], extra = evaluate_results_csv(res, queries)
         coverage[name] = (extra["coverage_pct"], extra["coverage95_pct"] or 0.0)
+        fixes[name] = extra["fixes"]
         print(f"      {name}: {res}", flush=True)
     print()
     print(format_table(table, title="Demo: 71 OSV-5M street images (48 countries); "
@@ -114,6 +115,11 @@ def run_demo(out: str | Path, with_bag: bool = True) -> int:
           f"{coverage['posterior (default): prior+VPR'][0]:.1f}% / "
           f"{coverage['posterior (default): prior+VPR'][1]:.1f}% "
           "(docs/fusion.md; this map has one image per place, so no leave-one-out calibration)")
+    fx = fixes["posterior (default): prior+VPR"]
+    if fx and fx["n"]:
+        print(f"      verified fixes (NavSatFix STATUS_FIX): {fx['n']} of {len(files)} "
+              f"({fx['rate_pct']:.1f}%), precision {fx['precision25_pct']:.1f}% within 25 m, "
+              f"{fx['precision50_pct']:.1f}% within 50 m (docs/verification.md)")
     print()
     if with_bag:
         _bag_demo(out, map_dir, queries, priors_csv)
