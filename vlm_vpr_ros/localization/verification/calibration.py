@@ -24,7 +24,6 @@ taken as uniform over the place disc (``r_q = R sqrt(q)``). See :func:`verified_
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import time
@@ -35,10 +34,9 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 
 from vlm_vpr_ros.errors import MapError
-from vlm_vpr_ros.files.atomic import atomic_write_json
 from vlm_vpr_ros.geodesy import EARTH_RADIUS_KM, haversine_km, latlon_to_unit
 from vlm_vpr_ros.localization.verification.evidence import EvidenceConfig, weigh
-from vlm_vpr_ros.maps.format import MANIFEST, checked_file, file_table
+from vlm_vpr_ros.maps.documents import load_document, save_document
 from vlm_vpr_ros.types import LocalFeatures
 
 log = logging.getLogger(__name__)
@@ -208,34 +206,14 @@ def validate(doc: Any, where: str) -> dict[str, Any]:
 
 
 def load_doc(ref_map: Any) -> dict[str, Any] | None:
-    """The map's verification.json (validated, size-checked) or None when it has none."""
-    rel = ref_map.manifest.get("verification_calibration")
-    if not rel or ref_map.path is None:
-        return None
-    if rel not in ref_map.manifest.get("files", {}):
-        log.warning("%s: %s is not listed in the manifest; verification is uncalibrated",
-                    ref_map.path, rel)
-        return None
-    p = checked_file(Path(ref_map.path), ref_map.manifest, rel, True)
-    try:
-        doc = json.loads(p.read_text(encoding="utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise MapError(f"{p}: corrupt verification calibration ({exc})") from None
-    return validate(doc, str(p))
+    """The map's verification.json (validated, checksum-checked) or None when it has none."""
+    doc = load_document(ref_map, "verification_calibration", "verification calibration")
+    return None if doc is None else validate(
+        doc, f"{ref_map.path}/{ref_map.manifest['verification_calibration']}")
 
 
 def save_doc(ref_map: Any, doc: Mapping[str, Any]) -> Path:
     """Write ``verification.json`` into a saved map and list it in the manifest (last)."""
-    if ref_map.path is None:
-        raise MapError("save the map before writing its verification calibration")
-    path = Path(ref_map.path)
     validate(dict(doc), VERIFY_CAL_FILE)
-    p = path / VERIFY_CAL_FILE
-    atomic_write_json(p, dict(doc))
-    manifest = dict(ref_map.manifest)
-    files = dict(manifest.get("files", {}))
-    files.update(file_table(path, [VERIFY_CAL_FILE]))
-    manifest["files"], manifest["verification_calibration"] = files, VERIFY_CAL_FILE
-    atomic_write_json(path / MANIFEST, manifest)
-    ref_map.manifest = manifest
-    return p
+    return save_document(ref_map, "verification_calibration", VERIFY_CAL_FILE, doc,
+                         "verification calibration")
