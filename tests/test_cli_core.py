@@ -80,7 +80,8 @@ def test_build_localize_evaluate(tmp_path, demo_data, queries):
         assert summary["accuracy"][key] == pytest.approx(
             round(100 * sum(e <= t for e in errs) / 11, 2))
     table = run("evaluate", "--results", res, "--ground-truth", queries / "queries.csv").stdout
-    assert "2500km" in table and "coverage" not in proc.stdout
+    assert "2500km" in table and "coverage:" in table and "coverage:" not in proc.stdout
+    assert "recall within 25 m: R@1" in table and "fixes (status fix):" in table
 
 
 def test_localize_without_prior_flags_rows(tmp_path, demo_map, queries):

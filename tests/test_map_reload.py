@@ -147,7 +147,8 @@ def test_node_map_reload_service(half, demo_data, tmp_path):
 
 def test_reload_checks_as_much_as_the_start_did(half, tmp_path, monkeypatch):
     """Opened without verify_map (the default), a reload hashes no index, coordinate or id file
-    (a 4.1M map is 4.5 GB; only the small calibration.json is always checked) but still
+    (a 4.1M map is 4.5 GB; only the small calibration.json and verification.json are always
+    checked) but still
     refuses a file whose size no longer matches the manifest."""
     from vlm_vpr_ros.maps import format as map_format
 
@@ -165,7 +166,7 @@ def test_reload_checks_as_much_as_the_start_did(half, tmp_path, monkeypatch):
     monkeypatch.setattr(map_format, "file_sha256", spy)
     new = pipe.reloaded()
     assert new.map.n_references == pipe.map.n_references and not new.verify
-    assert set(hashed) <= {"calibration.json"}, hashed
+    assert set(hashed) <= {"calibration.json", "verification.json"}, hashed
     pipe.reloaded(verify=True)
     assert any(h.endswith(".faiss") for h in hashed)  # the opt-in full pass
     man = json.loads((map_dir / "manifest.json").read_text())
