@@ -16,13 +16,14 @@ log = logging.getLogger(__name__)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("bag", help="make or inspect rosbag2 MCAP bags")
+    p = sub.add_parser("bag", help="make or inspect rosbag2 bags (MCAP, sqlite3)")
     bsub = p.add_subparsers(dest="bag_command", metavar="ACTION")
     bsub.required = True
     m = bsub.add_parser("make", help="geotagged images -> rosbag2 MCAP (camera + NavSatFix)",
                         description="Writes one camera frame per CSV row at --rate, each with a "
                                     "sensor_msgs/NavSatFix ground truth of the same stamp, as a "
-                                    "rosbag2 MCAP folder (metadata.yaml, frames.csv beside).")
+                                    "rosbag2 bag folder (MCAP or sqlite3, metadata.yaml; "
+                                    "frames.csv beside).")
     m.add_argument("--images", required=True, metavar="DIR")
     m.add_argument("--coords", required=True, metavar="CSV", help="columns file, lat, lon")
     m.add_argument("--out", required=True, metavar="BAG", help="bag folder to create")
@@ -37,8 +38,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     m.add_argument("--start-time", default=None, metavar="SEC[.NANOSEC]",
                    help="stamp of the first frame, seconds since the epoch, read exactly (up "
                         "to 9 decimals; default: now)")
-    m.add_argument("--mcap-compression", choices=["none", "zstd", "lz4"], default="none",
-                   help="MCAP chunk compression (default none)")
+    m.add_argument("--storage", choices=["mcap", "sqlite3"], default="mcap",
+                   help="rosbag2 storage: BAG/BAG.mcap (default) or BAG/BAG.db3")
+    m.add_argument("--mcap-compression", choices=["none", "zstd"], default="none",
+                   help="MCAP chunk compression (default none; zstd needs --storage mcap)")
     m.add_argument("--overwrite", action="store_true")
     m.set_defaults(func=cmd_bag_make)
     i = bsub.add_parser("info", help="topics, types and counts of a bag")
@@ -140,7 +143,8 @@ def cmd_bag_make(args: argparse.Namespace) -> int:
     info = make_bag(args.images, args.coords, args.out, rate_hz=args.rate,
                     compressed=args.compressed, topic_prefix=args.topic_prefix,
                     gt_topic=args.gt_topic, frame_id=args.frame_id, start_time_ns=start,
-                    compression=args.mcap_compression, overwrite=args.overwrite)
+                    storage=args.storage, compression=args.mcap_compression,
+                    overwrite=args.overwrite)
     print(f"bag {info['bag']}: {info['frames']} frames on {info['image_topic']} + "
           f"{info['gt_topic']} over {info['duration_s']:.1f} s"
           + (f" ({len(info['skipped'])} unreadable images skipped)" if info["skipped"] else ""))
