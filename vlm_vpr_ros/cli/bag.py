@@ -68,8 +68,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     e = sub.add_parser("evaluate-bag", help="localize a bag's frames offline and score them",
                        description="Reads images and NavSatFix ground truth from the bag, "
-                                   "localizes every frame, writes frames.csv, summary.json, "
-                                   "world_map.png, error_cdf.png and an estimates bag.")
+                                   "localizes every frame (default --fusion posterior, as the "
+                                   "node), writes frames.csv, summary.json, world_map.png, "
+                                   "error_cdf.png and an estimates bag.")
     e.add_argument("bag", metavar="BAG")
     e.add_argument("--map", required=True, metavar="MAP")
     _frame_args(e)
@@ -87,8 +88,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     a = sub.add_parser("ablate", help="the paper's ablation table and top-p plot",
                        description="Rows {no prior, prior+re-rank, country submap, cluster "
-                                   "submap (each with/without re-rank)} x a top-p sweep, "
-                                   "from one map (re-partitioned in memory).")
+                                   "submap (each with/without re-rank)} of the paper's method, "
+                                   "plus the default posterior fusion with and without the "
+                                   "prior, x a top-p sweep, from one map (re-partitioned in "
+                                   "memory).")
     a.add_argument("--map", required=True, metavar="MAP")
     a.add_argument("--images", metavar="DIR", help="query images (with --queries)")
     a.add_argument("--queries", metavar="CSV", help="query file, lat, lon")
@@ -240,7 +243,8 @@ def cmd_evaluate_bag(args: argparse.Namespace) -> int:
 
 
 def cmd_ablate(args: argparse.Namespace) -> int:
-    from vlm_vpr_ros.evaluation.ablation import format_ablation, run_ablation
+    from vlm_vpr_ros.evaluation.ablation import ablation_table, format_ablation, run_ablation
+    from vlm_vpr_ros.evaluation.metrics import table_cells
     from vlm_vpr_ros.bags.ablate_inputs import ablation_inputs
     from vlm_vpr_ros.config import choose
     from vlm_vpr_ros.files.atomic import atomic_write_json
@@ -268,7 +272,10 @@ def cmd_ablate(args: argparse.Namespace) -> int:
     plot = plot_topp_ablation(out / "ablation_top_p.png", res.top_ps,
                               {k: [s["accuracy"] for s in v] for k, v in res.rows.items()},
                               title=f"top-p ablation ({len(desc)} queries)")
-    data = {**res.as_dict(), "plot": str(plot)}
+    title, _, table = ablation_table(res, args.table_top_p)
+    head, body = table_cells(table)
+    data = {**res.as_dict(), "plot": str(plot),  # "tables": what scripts/gen_docs.py renders
+            "tables": {"main": {"title": title, "columns": head, "rows": body}}}
     atomic_write_json(out / "ablation.json", data)
     if args.json:
         json.dump(data, sys.stdout)
