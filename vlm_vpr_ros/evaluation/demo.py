@@ -118,6 +118,7 @@ def run_step(ref_map, runs: dict, files: list[str], qdesc: np.ndarray, queries_c
 def run_demo(out: str | Path, with_bag: bool = True) -> int:
     from vlm_vpr_ros.evaluation.lookalike import build_lookalike_map, write_refs
     from vlm_vpr_ros.evaluation.metrics import format_table
+    from vlm_vpr_ros.files.atomic import atomic_save_npy
     from vlm_vpr_ros.files.csvio import read_file_column
     from vlm_vpr_ros.localization.localizer import LocalizerConfig
     from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
@@ -137,6 +138,7 @@ def run_demo(out: str | Path, with_bag: bool = True) -> int:
     files = read_file_column(queries)
     pipe = LocalizationPipeline.open(map_dir)
     qdesc = np.stack([pipe.describe(load_image(out / "queries" / f)) for f in files])
+    atomic_save_npy(out / "queries_descriptors.npy", qdesc)  # rows of queries.csv
     paper = LocalizerConfig(fusion="paper")
     print(f"[3/{n_steps}] localizing the queries on the demo map ...", flush=True)
     runs = {VPR: paper, PRIOR: None, PAPER_NO_RR: LocalizerConfig(fusion="paper", rerank=False),

@@ -35,7 +35,7 @@ def summarize(errs: Iterable[float | None],
 
 
 def threshold_label(key: str) -> str:
-    """An accuracy key as a column label: ``"25km"`` → ``"25km"``, ``"0.025km"`` → ``"25m"``."""
+    """An accuracy key as a column label: ``"25km"`` stays, ``"0.025km"`` → ``"25m"``."""
     km = float(key.removesuffix("km"))
     return f"{km * 1000:g}m" if km < 1 else key
 
