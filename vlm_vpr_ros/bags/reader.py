@@ -193,10 +193,15 @@ _MCAP_ERRORS: tuple[type[BaseException], ...] = (ValueError, struct.error, EOFEr
 
 
 def _mcap_errors() -> tuple[type[BaseException], ...]:
+    """What reading damaged MCAP data raises: mcap's own errors, struct/zlib/OS errors, and the
+    chunk decompressors' (zstandard's ``ZstdError``; lz4 raises ``RuntimeError``)."""
+    from mcap import stream_reader
     from mcap.exceptions import McapError
-    from zstandard import ZstdError  # a damaged zstd chunk
 
-    return (McapError, ZstdError) + _MCAP_ERRORS
+    zstd = getattr(stream_reader, "zstandard", None)
+    lz4 = getattr(stream_reader, "lz4", None)
+    return ((McapError,) + _MCAP_ERRORS + ((zstd.ZstdError,) if zstd is not None else ())
+            + ((RuntimeError,) if lz4 is not None else ()))
 
 
 def _summary(f: Path) -> Any:
