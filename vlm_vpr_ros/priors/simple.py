@@ -6,7 +6,6 @@ import logging
 import math
 import os
 
-from vlm_vpr_ros.csvio import read_table
 from vlm_vpr_ros.errors import PriorError
 from vlm_vpr_ros.priors.base import Prior, PriorProvider, PriorQuery, PriorResult
 
