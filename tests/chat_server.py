@@ -29,7 +29,8 @@ deployment route, ``api-version`` query, ``api-key`` header), ``ollama`` and ``v
 OpenAI-compatible ``/v1`` routes). ``api_key=`` makes the server demand that key;
 ``structured=`` says what it does with ``response_format`` (``True`` honours it, ``False``
 refuses it with a 400, ``"ignore"`` answers in prose anyway); ``tls=(cert, key)`` serves https.
-The server counts TCP connections (:attr:`ChatServer.connections`).
+The server counts TCP connections (:attr:`ChatServer.connections`); ``keep_alive=False``
+closes each connection after its answer without announcing it (as an idle timeout would).
 """
 
 from __future__ import annotations
@@ -112,6 +113,8 @@ class _Handler(http.server.BaseHTTPRequestHandler):
             self.wfile.write(data)
         except (BrokenPipeError, ConnectionResetError):
             pass  # the client gave up (timeout/cancel): fine for a fixture
+        if not self.server.owner.keep_alive:  # close without saying so (an idle timeout)
+            self.close_connection = True
 
 
 class _Server(http.server.ThreadingHTTPServer):
@@ -143,12 +146,13 @@ class ChatServer:
                  dialect: str = "openai", api_key: str | None = None,
                  models: tuple[str, ...] | None = None, deployment: str = "gpt-5-mini",
                  structured: bool | str = True, tls: tuple[str, str] | None = None,
-                 uncertainty_km: float = 25.0) -> None:
+                 uncertainty_km: float = 25.0, keep_alive: bool = True) -> None:
         if dialect not in DIALECTS:
             raise ValueError(f"unknown dialect {dialect!r}; choices: {DIALECTS}")
         self.dialect, self.api_key, self.models = dialect, api_key, models
         self.deployment, self.structured, self.tls = deployment, structured, tls
         self.uncertainty_km = uncertainty_km
+        self.keep_alive = keep_alive
         self.content = ""
         self._connections = 0
         self._rejected: list[dict[str, Any]] = []
