@@ -49,8 +49,9 @@ def ask(capsys, caplog, *args) -> tuple[int, str, str]:
 
 
 def _server(dialect, model, demands_key, **kw):
+    kw = {"lat": -33.8568, "lon": 151.2153, **kw}
     return ChatServer(dialect=dialect, api_key=KEY if demands_key else None, models=(model,),
-                      lat=-33.8568, lon=151.2153, **kw)
+                      **kw)
 
 
 @pytest.mark.parametrize("dialect, model, demands_key", DIALECTS,
@@ -222,3 +223,49 @@ def test_config_errors_are_one_line():
         with pytest.raises(ConfigError, match=needle.replace("[", r"\[")) as err:
             create_prior_provider("openai", {"api_key_env": "VLM_NO_SUCH_KEY", **opts})
         assert "\n" not in str(err.value)
+
+
+@pytest.mark.timeout(120)
+def test_node_gets_a_structured_prior_from_a_reasoning_model(demo_map, demo_data, tmp_path,
+                                                             monkeypatch):
+    """The real node (own process, rclpy + Fast DDS) against the reasoning dialect with
+    structured output: the first request is accepted, /diagnostics reports the prior and how
+    it was read, and the key is not in the node's log."""
+    from node_harness import domain_id, image_msg, node_and_client
+
+    from vlm_vpr_ros.imageio import load_image
+
+    monkeypatch.setenv(ENV, KEY)  # the node process inherits it
+    rgb = load_image(sorted((demo_data / "images").glob("*.jpg"))[0])
+    with _server("openai_reasoning", "gpt-5.4-mini", True, lat=39.5591, lon=8.8889) as srv:
+        params = {"map_dir": str(demo_map), "prior_provider": "openai",
+                  "prior.base_url": srv.base_url, "prior.model": "gpt-5.4-mini",
+                  "prior.api_key_env": ENV, "prior.structured_output": True,
+                  "prior.max_retries": 0, "min_period_s": 0.5, "diagnostics_period_s": 0.5}
+        with node_and_client(params, tmp_path / "node.log", domain_id()) as (node, client):
+            stamp = [1_700_000_000_000_000_000]
+
+            def tick():
+                stamp[0] += 1
+                client.image_pub.publish(image_msg(rgb, stamp[0]))
+
+            diag = client.wait_for(lambda: (d := client.latest_diag()).get("prior_ok") == "true"
+                                   and d, 60.0, tick=tick, period_s=0.2)
+            log = node.log()
+        rejected, first = srv.rejected, srv.requests[0]
+    assert diag, log[-3000:]
+    assert diag["prior_source"] == "openai:gpt-5.4-mini" and diag["prior_parse"] == "structured"
+    assert not rejected and "response_format" in first and "temperature" not in first
+    assert KEY not in log and KEY[10:30] not in log
+
+
+def test_results_written_before_the_prior_parse_column_resume(tmp_path):
+    """`localize --resume` keeps the rows of a results file written before `prior_parse`."""
+    from vlm_vpr_ros.batch import RESULT_FIELDS, read_done_rows
+
+    old = [k for k in RESULT_FIELDS if k != "prior_parse"]
+    path = tmp_path / "res.csv"
+    path.write_text(",".join(old) + "\n" + ",".join(
+        "a.jpg" if k == "file" else "ok" if k == "flags" else "1" for k in old) + "\n")
+    rows = read_done_rows(path)
+    assert len(rows) == 1 and rows[0]["prior_parse"] == "" and rows[0]["file"] == "a.jpg"

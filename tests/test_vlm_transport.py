@@ -152,13 +152,15 @@ def test_canary_localize_through_the_proxy(cert, demo_map, demo_data, tmp_path):
              "--images", demo_data / "images", "--queries", queries, "--out", out,
              "--prior", "openai", "--prior-option", f"base_url={srv.url_for('vlm.test')}",
              "--prior-option", "model=gpt-5-mini", "--prior-option", "api_key_env=VLM_T_KEY",
-             "--prior-option", f"ca_file={cert[0]}", "--prior-option", f"cache_dir={cache}"],
+             "--prior-option", f"ca_file={cert[0]}", "--prior-option", f"cache_dir={cache}",
+             "--prior-option", "structured_output=true"],
             capture_output=True, text=True, timeout=300, env=env)
         tunnels = len(proxy.connects)
     assert proc.returncode == 0, proc.stderr[-3000:]
     rows = list(csv.DictReader(out.open()))
     assert len(rows) == 3 and all(r["prior_source"] == "openai:gpt-5-mini"
-                                  and r["prior_reason"] == "" for r in rows), rows
+                                  and r["prior_reason"] == "" and r["prior_parse"] == "structured"
+                                  for r in rows), rows
     assert 1 <= tunnels <= 3  # localize asks ahead: at most one tunnel per request in flight
     token = base64.b64encode(f"{PROXY_USER}:{PROXY_PW}".encode()).decode()
     texts = [proc.stdout, proc.stderr, out.read_text(),

@@ -234,6 +234,7 @@ def test_null_island_answer_is_a_flagged_non_prior(cli, image, map_copy, demo_da
                        "--prior-option", f"base_url={srv.base_url}")
     row = next(csv.DictReader((tmp_path / "r.csv").open()))
     assert rc == 0 and row["prior_reason"] == "suspicious_null_island"
+    assert row["prior_parse"] == "text"
     assert row["prior_lat"] == "" and "prior_failed" in row["flags"].split("|")
 
 
