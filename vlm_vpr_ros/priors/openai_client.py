@@ -223,9 +223,10 @@ class ChatClient:
         return not handle.aborted.is_set()
 
     # --- transport -------------------------------------------------------------------------
-    def _open(self) -> tuple[http.client.HTTPConnection, bool]:
-        """A kept-alive idle connection, or a new one; and whether it was kept."""
-        idle = self.pool.take()
+    def _open(self, fresh: bool = False) -> tuple[http.client.HTTPConnection, bool]:
+        """A kept-alive idle connection (unless ``fresh``), or a new one; and whether it was
+        kept."""
+        idle = None if fresh else self.pool.take()
         if idle is not None:
             return idle, True
         self.pool.opened_one()
@@ -250,8 +251,8 @@ class ChatClient:
         conn: http.client.HTTPConnection | None = None
         reusable = False
         try:
-            for _ in range(2):  # a second time only when a kept connection proves stale
-                conn, reused = self._open()
+            for again in (False, True):  # again: only after a kept connection proved stale
+                conn, reused = self._open(fresh=again)
                 current[:] = [conn]
                 handle._attach(conn)
                 if fired.is_set():

@@ -92,16 +92,18 @@ def response_format(prompt: Prompt, uncertainty: bool = False) -> dict[str, Any]
     prompt asks), then ``latitude`` and ``longitude`` in decimal degrees, and with
     ``uncertainty`` the model's own error radius ``uncertainty_km``."""
     props: dict[str, Any] = {k: {"type": "string"} for k in _TEXT_FIELDS.get(prompt.name, ())}
-    props["latitude"] = {"type": "number", "minimum": -90, "maximum": 90,
-                         "description": "latitude of the photo in decimal degrees"}
-    props["longitude"] = {"type": "number", "minimum": -180, "maximum": 180,
-                          "description": "longitude of the photo in decimal degrees"}
+    # the strictest common subset of the providers' schema modes: every field required, no
+    # numeric constraints (ranges are in the descriptions; the parser checks them)
+    props["latitude"] = {"type": "number",
+                         "description": "latitude of the photo in decimal degrees, -90 to 90"}
+    props["longitude"] = {"type": "number", "description": "longitude of the photo in decimal "
+                                                           "degrees, -180 to 180"}
     if uncertainty:
         props["uncertainty_km"] = {
-            "type": "number", "minimum": 0,
+            "type": "number",
             "description": "your own estimate of how far off the coordinates may be: the "
                            "radius in km holding the true position with about 68 % "
-                           "probability"}
+                           "probability (>= 0)"}
     name = f"geolocation_{prompt.name}{'_u' if uncertainty else ''}"
     return {"type": "json_schema", "json_schema": {
         "name": name, "strict": True,
