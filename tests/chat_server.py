@@ -20,7 +20,8 @@ streamed in 1 MB blocks), ``drip`` (headers, then one byte every ``delay_s``, at
 ``reset`` (the connection is reset without an answer), ``silence`` (the request is read, then
 nothing is sent until stopped: same as ``hang``), ``echo`` (the answer text is the request
 headers, as a careless proxy or debug server would send them), ``text`` (the answer is
-``content``, set with :meth:`ChatServer.set`). Every loop is bounded and stops with the server.
+``content``, set with :meth:`ChatServer.set`), ``length`` (no text, ``finish_reason:
+"length"``: a reasoning model that spent its token limit on hidden reasoning). Every loop is bounded and stops with the server.
 
 Dialects (``dialect=``), each with the routes, auth and error bodies of the real server
 (tests/chat_dialects.py): ``openai`` (default), ``openai_reasoning`` (rejects ``max_tokens``
@@ -45,7 +46,7 @@ from typing import Any
 from chat_dialects import DIALECTS, body_problem, route_problem, structured_answer
 
 BEHAVIOURS = ("ok", "slow", "429", "500", "malformed", "refusal", "fenced", "prose", "hang",
-              "garbage", "huge", "drip", "reset", "silence", "echo", "text")
+              "garbage", "huge", "drip", "reset", "silence", "echo", "text", "length")
 HUGE_BYTES = 50 * 1024 * 1024
 
 
@@ -342,6 +343,8 @@ class ChatServer:
                 f"{k}: {v}" for k, v in headers.items()), model, dialect=self.dialect))
         elif behaviour == "text":
             handler._send(200, completion(self.content, model, dialect=self.dialect))
+        elif behaviour == "length":
+            handler._send(200, completion("", model, finish="length", dialect=self.dialect))
         else:
             handler._send(200, completion(answer, model, dialect=self.dialect))
 

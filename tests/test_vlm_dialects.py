@@ -269,3 +269,14 @@ def test_results_written_before_the_prior_parse_column_resume(tmp_path):
         "a.jpg" if k == "file" else "ok" if k == "flags" else "1" for k in old) + "\n")
     rows = read_done_rows(path)
     assert len(rows) == 1 and rows[0]["prior_parse"] == "" and rows[0]["file"] == "a.jpg"
+
+
+def test_answer_cut_at_the_token_limit_says_to_raise_it(caplog):
+    with ChatServer("length", dialect="openai_reasoning") as srv:
+        with create_prior_provider("openai", {"base_url": srv.base_url, "model": "o4-mini",
+                                              "max_tokens": 200}) as prov:
+            res = prov.get(PriorQuery(image=_rgb()), timeout_s=10)
+    assert res.reason == "truncated" and "max_completion_tokens=200" in res.extra["detail"]
+    assert "raise the prior option max_tokens" in res.extra["detail"]
+    assert sum("max_completion_tokens=200" in r.getMessage() for r in caplog.records
+               if r.levelname == "WARNING") == 1
