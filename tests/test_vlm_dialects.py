@@ -280,3 +280,15 @@ def test_answer_cut_at_the_token_limit_says_to_raise_it(caplog):
     assert "raise the prior option max_tokens" in res.extra["detail"]
     assert sum("max_completion_tokens=200" in r.getMessage() for r in caplog.records
                if r.levelname == "WARNING") == 1
+
+
+def test_a_model_the_server_does_not_have_is_one_line(caplog):
+    """Ollama without the model pulled: HTTP 404 with the server's own advice, once."""
+    with ChatServer(dialect="ollama", models=("qwen3-vl:8b",)) as srv:
+        with create_prior_provider("openai", {"base_url": srv.base_url, "model": "qwen3-vl:32b",
+                                              "max_retries": 2}) as prov:
+            results = [prov.get(PriorQuery(image=_rgb()), timeout_s=10) for _ in range(2)]
+    assert [r.reason for r in results] == ["http_404", "http_404"] and len(srv.rejected) == 2
+    assert 'model "qwen3-vl:32b" not found, try pulling it first' in results[0].extra["detail"]
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert sum("try pulling it first" in w for w in warnings) == 1  # not once per request

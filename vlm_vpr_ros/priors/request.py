@@ -22,8 +22,8 @@ from vlm_vpr_ros.config import choose
 from vlm_vpr_ros.errors import ConfigError
 from vlm_vpr_ros.redact import redact
 
-__all__ = ["FAMILIES", "TOKEN_PARAMS", "RequestOptions", "model_family", "rejection",
-           "request_options"]
+__all__ = ["FAMILIES", "TOKEN_PARAMS", "RequestOptions", "error_message", "model_family",
+           "rejection", "request_options"]
 
 FAMILIES = ("auto", "chat", "reasoning")
 TOKEN_PARAMS = ("auto", "max_tokens", "max_completion_tokens", "none")
@@ -190,6 +190,16 @@ def _option_for(param: str, opts: RequestOptions) -> str:
     return "the request options (see docs/priors.md)"
 
 
+def _one_line(message: str) -> str:
+    one = " ".join(redact(message).split())
+    return one[:197] + "..." if len(one) > 200 else one
+
+
+def error_message(payload: bytes) -> str:
+    """The server's message in an error body, redacted, on one line of <= 200 characters."""
+    return _one_line(_error_fields(payload)[0])
+
+
 @dataclass(frozen=True)
 class Rejection:
     """An HTTP 4xx that names a request field: which one, and the one-line advice."""
@@ -218,5 +228,4 @@ def rejection(status: int, payload: bytes, sent: Mapping[str, Any]) -> Rejection
             top = "response_format"
     if top is None or top in ("messages", "model"):
         return None
-    one = " ".join(redact(message).split())
-    return Rejection(top, one[:197] + "..." if len(one) > 200 else one)
+    return Rejection(top, _one_line(message))

@@ -39,7 +39,7 @@ from vlm_vpr_ros.priors.keys import read_api_key
 from vlm_vpr_ros.priors.openai_client import CallHandle, ChatClient, ChatReply
 from vlm_vpr_ros.priors.parsing import PARSER_MODES, parse_answer, parse_structured
 from vlm_vpr_ros.priors.prompts import build_messages, get_prompt, response_format
-from vlm_vpr_ros.priors.request import rejection, request_options
+from vlm_vpr_ros.priors.request import error_message, rejection, request_options
 from vlm_vpr_ros.redact import redact
 
 log = logging.getLogger(__name__)
@@ -260,7 +260,7 @@ class OpenAIPrior(PriorProvider):
             return PriorResult(None, self.source, "refusal", latency, redact(reply.refusal),
                                extra)
         if not reply.ok or reply.content is None:
-            if extra.get("detail") is None and (detail := self._explain(reply)):
+            if detail := self._explain(reply):
                 extra["detail"] = detail
             return PriorResult(None, self.source, reply.reason or "bad_response", latency,
                                None, extra)
@@ -300,16 +300,18 @@ class OpenAIPrior(PriorProvider):
             "text_fallback"
 
     def _explain(self, reply: ChatReply) -> str | None:
-        """One line saying which option to change, for a 400 that names a request field."""
-        if reply.status not in (400, 422):
+        """One line for a request the endpoint refused (4xx): which option to change when it
+        names a request field, else the server's own message (e.g. Ollama's "model ... not
+        found, try pulling it first"). 401/403/407 are reported by the client."""
+        status = reply.status or 0
+        if not 400 <= status < 500 or status in (401, 403, 407, 408, 429):
             return None
-        sent = self.options.body(self.model, [], self.response_format)
-        refused = rejection(reply.status, reply.error_body or b"", sent)
-        if refused is None:
-            log.warning("%s: HTTP %d for model %s (-vv shows the answer body)",
-                        self.client.endpoint, reply.status, self.model)
-            return None
-        detail = refused.advice(self.client.endpoint, self.options)
+        body = reply.error_body or b""
+        refused = rejection(status, body, self.options.body(self.model, [],
+                                                            self.response_format))
+        detail = (refused.advice(self.client.endpoint, self.options) if refused is not None
+                  else f"{self.client.endpoint}: HTTP {status} for model {self.model}: "
+                       f"{error_message(body) or '(no message)'}")
         self._tell(detail)
         return detail
 
