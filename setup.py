@@ -34,8 +34,8 @@ setup(
     entry_points={
         "console_scripts": [
             "vlm-vpr = vlm_vpr_ros.cli:main",
-            "vlm_vpr_node = vlm_vpr_ros.node:main",
-            "vlm_vpr_lifecycle_node = vlm_vpr_ros.node:lifecycle_main",
+            "vlm_vpr_node = vlm_vpr_ros.ros.node:main",
+            "vlm_vpr_lifecycle_node = vlm_vpr_ros.ros.node:lifecycle_main",
         ],
     },
 )

@@ -24,11 +24,12 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from vlm_vpr_ros.demo import DEMO_DATA, make_query  # noqa: E402
-from vlm_vpr_ros.imageio import load_image  # noqa: E402
-from vlm_vpr_ros.localizer import Localizer, LocalizerConfig  # noqa: E402
-from vlm_vpr_ros.map_build import assemble_map, build_map  # noqa: E402
-from vlm_vpr_ros.pipeline import LocalizationPipeline  # noqa: E402
+from vlm_vpr_ros.evaluation.demo import DEMO_DATA, make_query  # noqa: E402
+from vlm_vpr_ros.files.images import load_image  # noqa: E402
+from vlm_vpr_ros.localization.localizer import Localizer, LocalizerConfig  # noqa: E402
+from vlm_vpr_ros.maps.assemble import assemble_map
+from vlm_vpr_ros.maps.build_images import build_map  # noqa: E402
+from vlm_vpr_ros.localization.pipeline import LocalizationPipeline  # noqa: E402
 from vlm_vpr_ros.priors.base import Prior, PriorResult  # noqa: E402
 
 MP16 = REPO.parent / "shared" / "data" / "mp16_coords" / "coordinates_100K.csv"

@@ -28,9 +28,9 @@ sys.path.insert(0, str(REPO / "tests"))
 
 from chat_server import ChatServer  # noqa: E402
 from node_harness import GraphClient, NodeProcess, domain_id, image_msg, stamp_of  # noqa: E402
-from vlm_vpr_ros.demo import DEMO_DATA  # noqa: E402
-from vlm_vpr_ros.imageio import load_image  # noqa: E402
-from vlm_vpr_ros.map_build import build_map  # noqa: E402
+from vlm_vpr_ros.evaluation.demo import DEMO_DATA  # noqa: E402
+from vlm_vpr_ros.files.images import load_image  # noqa: E402
+from vlm_vpr_ros.maps.build_images import build_map  # noqa: E402
 
 QUERY = "546314506564628.jpg"
 TRUTH = (39.55910238557, 8.8888751944543)

@@ -64,8 +64,8 @@ def publisher(args: argparse.Namespace) -> None:
     from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
     from sensor_msgs.msg import CompressedImage, Image
 
-    from vlm_vpr_ros.demo import DEMO_DATA
-    from vlm_vpr_ros.imageio import encode_jpeg, load_image
+    from vlm_vpr_ros.evaluation.demo import DEMO_DATA
+    from vlm_vpr_ros.files.images import encode_jpeg, load_image
 
     rgb = cv2.resize(load_image(DEMO_DATA / "images" / QUERY), (args.width, args.height),
                      interpolation=cv2.INTER_AREA)
@@ -153,8 +153,8 @@ def main() -> None:
     if args.publisher:
         publisher(args)
         return
-    from vlm_vpr_ros.demo import DEMO_DATA
-    from vlm_vpr_ros.map_build import build_map
+    from vlm_vpr_ros.evaluation.demo import DEMO_DATA
+    from vlm_vpr_ros.maps.build_images import build_map
 
     with tempfile.TemporaryDirectory() as tmp_name:
         tmp = Path(tmp_name)

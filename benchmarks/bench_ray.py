@@ -36,7 +36,7 @@ from vlm_vpr_ros.descriptors import create_descriptor  # noqa: E402
 from vlm_vpr_ros.distributed.describe import DescribeOptions, describe_to_shards  # noqa: E402
 from vlm_vpr_ros.distributed.shards import ShardStore, job_fingerprint, read_shards  # noqa: E402
 from vlm_vpr_ros.distributed.sources import ImageSource  # noqa: E402
-from vlm_vpr_ros.map_build import fit_sample_indices, read_coords_csv  # noqa: E402
+from vlm_vpr_ros.maps.build_images import fit_sample_indices, read_coords_csv  # noqa: E402
 
 SF = REPO.parent / "shared" / "data" / "sf_night"
 PLANET = 4_100_000
@@ -45,7 +45,7 @@ DEEP = ("cosplace", "eigenplaces", "mixvpr", "boq")
 
 def prefit(images: str, ids: list[str], name: str, shard_size: int) -> dict:
     """Fit once (the describe job's sample) and return the state arrays."""
-    from vlm_vpr_ros.distributed.describe import fit_on_sample
+    from vlm_vpr_ros.distributed.engines import fit_on_sample
 
     desc = create_descriptor(name)
     if not desc.needs_fit:

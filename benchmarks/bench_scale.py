@@ -171,8 +171,8 @@ def status_mib() -> dict:
 def child(map_dir: str, work: str, n_loop: int, n_global: int) -> None:
     """Runs in a fresh process: open, report RSS, time queries, recall vs exact."""
     t_start = time.perf_counter()
-    from vlm_vpr_ros.localizer import Localizer, LocalizerConfig
-    from vlm_vpr_ros.map_io import ReferenceMap
+    from vlm_vpr_ros.localization.localizer import Localizer, LocalizerConfig
+    from vlm_vpr_ros.maps.reference_map import ReferenceMap
     from vlm_vpr_ros.priors.base import Prior, PriorResult
 
     m = ReferenceMap.load(map_dir)
@@ -241,8 +241,8 @@ def child(map_dir: str, work: str, n_loop: int, n_global: int) -> None:
 
 def exact_top(map_dir: Path, work: Path, n_recall: int) -> None:
     """Exact float32 top-50 in each recall query's submap, from the source descriptors."""
-    from vlm_vpr_ros.localizer import Localizer, LocalizerConfig
-    from vlm_vpr_ros.map_io import ReferenceMap
+    from vlm_vpr_ros.localization.localizer import Localizer, LocalizerConfig
+    from vlm_vpr_ros.maps.reference_map import ReferenceMap
     from vlm_vpr_ros.priors.base import Prior
 
     m = ReferenceMap.load(map_dir)

@@ -33,4 +33,4 @@ if [[ ! -f "$params" ]]; then
   echo "run_node.sh: params file not found: $params" >&2
   exit 2
 fi
-exec "$py" -m vlm_vpr_ros.node "${variant[@]}" --ros-args --params-file "$params" "$@"
+exec "$py" -m vlm_vpr_ros.ros.node "${variant[@]}" --ros-args --params-file "$params" "$@"

@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 
 from vlm_vpr_ros.errors import ImageDecodeError
-from vlm_vpr_ros.imageio import MAX_PIXELS, check_rgb, decode_image_bytes
+from vlm_vpr_ros.files.images import MAX_PIXELS, check_rgb, decode_image_bytes
 
 
 @dataclass(frozen=True)

@@ -15,18 +15,17 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import hashlib
-import json
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from vlm_vpr_ros.cli.priors import score_answers  # noqa: E402
-from vlm_vpr_ros.evaluation import read_ground_truth  # noqa: E402
-from vlm_vpr_ros.fusion.error_model import (ERROR_MODEL_FORMAT, ERROR_MODEL_VERSION,  # noqa: E402
-                                            fit_error_model)
+from vlm_vpr_ros.evaluation.metrics import read_ground_truth  # noqa: E402
+from vlm_vpr_ros.localization.fusion.error_model import (ERROR_MODEL_FORMAT, ERROR_MODEL_VERSION,
+                                                         fit_error_model)
 from vlm_vpr_ros.geodesy import THRESHOLDS_KM  # noqa: E402
-from vlm_vpr_ros.map_io import atomic_write_json  # noqa: E402
+from vlm_vpr_ros.files.atomic import atomic_write_json  # noqa: E402
 from vlm_vpr_ros.priors.vlm import read_answers_csv  # noqa: E402
 
 

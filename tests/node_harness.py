@@ -1,7 +1,7 @@
 """TEST/BENCHMARK HARNESS for vlm_vpr_node: run it as a separate process and talk to it over a
 real ROS 2 graph (rclpy + Fast DDS, loopback only). Not part of the package.
 
-* :class:`NodeProcess` starts ``sys.executable -m vlm_vpr_ros.node --ros-args -p ...`` with its
+* :class:`NodeProcess` starts ``sys.executable -m vlm_vpr_ros.ros.node --ros-args -p ...`` with its
   own ``ROS_DOMAIN_ID`` and ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``, logs to a file, and is
   stopped by its own PID (SIGINT, then SIGKILL after a grace period).
 * :class:`GraphClient` owns a fresh rclpy ``Context`` and node, spins it on a background thread,
@@ -60,7 +60,7 @@ class NodeProcess:
         self.proc: subprocess.Popen | None = None
 
     def start(self) -> "NodeProcess":
-        args = [sys.executable, "-m", "vlm_vpr_ros.node", *(["--lifecycle"] if self.lifecycle
+        args = [sys.executable, "-m", "vlm_vpr_ros.ros.node", *(["--lifecycle"] if self.lifecycle
                                                             else []), "--ros-args"]
         if self.params_file is not None:
             args += ["--params-file", str(self.params_file)]

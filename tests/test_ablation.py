@@ -7,11 +7,11 @@ import json
 import numpy as np
 import pytest
 
-from vlm_vpr_ros.ablation import (PRIOR_ONLY, ROWS, format_ablation, run_ablation)
+from vlm_vpr_ros.evaluation.ablation import PRIOR_ONLY, ROWS, format_ablation, run_ablation
 from vlm_vpr_ros.errors import DataError
-from vlm_vpr_ros.evaluation import errors_km, summarize
+from vlm_vpr_ros.evaluation.metrics import errors_km, summarize
 from vlm_vpr_ros.geodesy import haversine_km
-from vlm_vpr_ros.map_io import ReferenceMap
+from vlm_vpr_ros.maps.reference_map import ReferenceMap
 from vlm_vpr_ros.priors.base import Prior, PriorResult
 from vlm_vpr_ros.priors.simple import read_prior_csv
 

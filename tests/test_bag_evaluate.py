@@ -34,7 +34,7 @@ def queries(demo_data, tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def pipe(demo_map):
-    from vlm_vpr_ros.pipeline import LocalizationPipeline
+    from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
 
     return LocalizationPipeline.open(demo_map)
 
@@ -58,11 +58,11 @@ def _rows(path: Path) -> list[dict]:
 
 
 def test_bag_equals_localize_on_files(cbag, pipe, demo_data, queries, tmp_path):
-    from vlm_vpr_ros.batch import localize_files
-    from vlm_vpr_ros.evaluation import evaluate_results_csv
-    from vlm_vpr_ros.map_build import read_file_column
+    from vlm_vpr_ros.localization.batch import localize_files
+    from vlm_vpr_ros.evaluation.metrics import evaluate_results_csv
+    from vlm_vpr_ros.files.csvio import read_file_column
     from vlm_vpr_ros.cli.common import write_csv_atomic
-    from vlm_vpr_ros.batch import RESULT_FIELDS
+    from vlm_vpr_ros.localization.batch import RESULT_FIELDS
 
     res = evaluate_bag(open_bag(cbag), pipe, _priors(demo_data), tmp_path / "ev",
                        progress=False)
@@ -113,8 +113,8 @@ def _custom_bag(path: Path, frames: list[tuple[str, np.ndarray]], gt_offset_ns: 
 
 
 def test_unsupported_encoding_keeps_other_frames(pipe, demo_data, tmp_path):
-    from vlm_vpr_ros.imageio import load_image
-    from vlm_vpr_ros.map_build import read_coords_csv
+    from vlm_vpr_ros.files.images import load_image
+    from vlm_vpr_ros.maps.build_images import read_coords_csv
 
     rows = read_coords_csv(demo_data / "coords.csv")[:4]
     imgs = [load_image(demo_data / "images" / f) for f, _, _ in rows]

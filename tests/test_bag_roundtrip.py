@@ -15,7 +15,7 @@ import yaml
 from vlm_vpr_ros.bags.make import make_bag
 from vlm_vpr_ros.bags.reader import deserialize, open_bag
 from vlm_vpr_ros.errors import BagError, ConfigError, DataError, OutputError
-from vlm_vpr_ros.imageio import load_image
+from vlm_vpr_ros.files.images import load_image
 
 START = 1_700_000_000_250_000_000
 N = 5
@@ -23,7 +23,7 @@ N = 5
 
 @pytest.fixture(scope="module")
 def subset(demo_data, tmp_path_factory) -> tuple[Path, list[tuple[str, float, float]]]:
-    from vlm_vpr_ros.map_build import read_coords_csv
+    from vlm_vpr_ros.maps.build_images import read_coords_csv
 
     rows = read_coords_csv(demo_data / "coords.csv")[:N]
     csv = tmp_path_factory.mktemp("subset") / "coords.csv"

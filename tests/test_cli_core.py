@@ -26,8 +26,8 @@ def queries(tmp_path_factory, demo_data):
     import cv2
     import numpy as np
 
-    from vlm_vpr_ros.demo import make_query
-    from vlm_vpr_ros.imageio import load_image
+    from vlm_vpr_ros.evaluation.demo import make_query
+    from vlm_vpr_ros.files.images import load_image
 
     d = tmp_path_factory.mktemp("q")
     rows = list(csv.DictReader(open(demo_data / "coords.csv")))[:10]
@@ -113,7 +113,7 @@ def test_started_ahead_keeps_order_and_a_bounded_window():
     """The prior-request pump of localize (images and precomputed descriptors): items come back
     in order, each started before it is handed out, never more than ``window`` ahead of the
     one handed out."""
-    from vlm_vpr_ros.batch import started_ahead
+    from vlm_vpr_ros.localization.batch import started_ahead
 
     started, seen = [], []
 

@@ -10,15 +10,16 @@ import numpy as np
 import pytest
 
 from vlm_vpr_ros.errors import ConfigError, MapError
-from vlm_vpr_ros.fusion.calibration import (_sample_prior, conformal_factor, load_calibration,
-                                            save_calibration)
-from vlm_vpr_ros.fusion.error_model import (DEFAULT_ERROR_MODEL, ErrorModel, fit_error_model,
-                                            load_error_models)
-from vlm_vpr_ros.fusion.posterior import fuse
+from vlm_vpr_ros.localization.fusion.calibration import (_sample_prior, conformal_factor,
+                                                         load_calibration)
+from vlm_vpr_ros.localization.fusion.error_model import (DEFAULT_ERROR_MODEL, ErrorModel,
+                                                         fit_error_model, load_error_models)
+from vlm_vpr_ros.localization.fusion.posterior import fuse
 from vlm_vpr_ros.geodesy import EARTH_RADIUS_KM, MAX_DISTANCE_KM, haversine_km
-from vlm_vpr_ros.localizer import Localizer, LocalizerConfig
-from vlm_vpr_ros.map_build import assemble_map, write_map_calibration
-from vlm_vpr_ros.map_io import ReferenceMap
+from vlm_vpr_ros.localization.localizer import Localizer, LocalizerConfig
+from vlm_vpr_ros.maps.assemble import assemble_map
+from vlm_vpr_ros.maps.build_images import write_map_calibration
+from vlm_vpr_ros.maps.reference_map import ReferenceMap
 from vlm_vpr_ros.priors.base import Prior, PriorResult
 
 MODEL = ErrorModel((1.0, 20.0, 800.0), (0.3, 0.3, 0.2), 0.2, "test")
@@ -155,7 +156,7 @@ def test_bad_priors_are_failed_priors_and_global_retrieval():
 def test_zero_candidates_is_a_flagged_no_match():
     import faiss
 
-    from vlm_vpr_ros.map_io import Submap
+    from vlm_vpr_ros.maps.reference_map import Submap
 
     ident = {"name": "synthetic", "dim": 8, "config": {}, "preprocessing": {}}
     empty = ReferenceMap({"descriptor": ident, "index": "flat",
@@ -307,7 +308,7 @@ def test_cli_calibrate_sets_the_user_factors(tmp_path, capsys):
 def test_mixture_radius_matches_a_scalar_bisection(q):
     """The vectorized radius search equals a plain 60-step scalar bisection (independent
     reference) for a continuous miss CDF and for a step-function one."""
-    from vlm_vpr_ros.fusion.posterior import _mixture_radius
+    from vlm_vpr_ros.localization.fusion.posterior import _mixture_radius
 
     rng = np.random.default_rng(5)
     d = np.sort(rng.uniform(0, 3000, 40))

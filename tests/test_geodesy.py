@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from vlm_vpr_ros.evaluation import errors_km, format_table, summarize
+from vlm_vpr_ros.evaluation.metrics import errors_km, format_table, summarize
 from vlm_vpr_ros.geodesy import (EARTH_RADIUS_KM, accuracy_table, enu_offset_m, haversine_km,
                                  median_km, spherical_mean)
 

@@ -7,8 +7,8 @@ import pytest
 
 from vlm_vpr_ros.errors import ConfigError, DescriptorError
 from vlm_vpr_ros.geodesy import haversine_km
-from vlm_vpr_ros.localizer import Localizer, LocalizerConfig
-from vlm_vpr_ros.map_build import assemble_map
+from vlm_vpr_ros.localization.localizer import Localizer, LocalizerConfig
+from vlm_vpr_ros.maps.assemble import assemble_map
 from vlm_vpr_ros.priors.base import Prior, PriorResult
 
 # real cities (lat, lon) → clusters of references around them
@@ -155,7 +155,7 @@ def test_dimension_mismatch_and_bad_config():
 
 
 def test_fp16_index_equals_brute_force_on_rounded_descriptors(tmp_path):
-    from vlm_vpr_ros.map_io import ReferenceMap
+    from vlm_vpr_ros.maps.reference_map import ReferenceMap
 
     rng = np.random.default_rng(5)
     desc = rng.normal(size=(300, 24)).astype(np.float32)

@@ -16,15 +16,16 @@ import pytest
 
 from teach_bags import Place, write_teach_bag
 from vlm_vpr_ros.cli import main
-from vlm_vpr_ros.demo import make_query
+from vlm_vpr_ros.evaluation.demo import make_query
 from vlm_vpr_ros.errors import MapError
-from vlm_vpr_ros.imageio import load_image
-from vlm_vpr_ros.localizer import Localizer
-from vlm_vpr_ros.map_build import assemble_map, read_coords_csv
-from vlm_vpr_ros import map_edit
-from vlm_vpr_ros.map_edit import verify_images
-from vlm_vpr_ros.map_io import ReferenceMap
-from vlm_vpr_ros.pipeline import LocalizationPipeline
+from vlm_vpr_ros.files.images import load_image
+from vlm_vpr_ros.localization.localizer import Localizer
+from vlm_vpr_ros.maps.assemble import assemble_map
+from vlm_vpr_ros.maps.build_images import read_coords_csv
+from vlm_vpr_ros.maps import edit as map_edit
+from vlm_vpr_ros.maps.map_images import verify_images
+from vlm_vpr_ros.maps.reference_map import ReferenceMap
+from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
 from vlm_vpr_ros.priors.base import Prior, PriorResult
 
 FAST = "vlad_rootsift_fast"
@@ -176,7 +177,7 @@ def test_failed_add_leaves_the_map_intact(half_map, demo_data, tmp_path, monkeyp
     def boom(*a, **k):
         raise OSError("disk full (injected)")
 
-    monkeypatch.setattr(map_edit, "_finish_manifest", boom)  # after the submaps were written
+    monkeypatch.setattr(map_edit, "finish_manifest", boom)  # after the submaps were written
     with pytest.raises(OSError, match="injected"):
         map_edit.add_references(half_map, demo_data / "images", rows[36:42], progress=False)
     assert _files(half_map) == before

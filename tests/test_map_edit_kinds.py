@@ -12,12 +12,12 @@ import pytest
 
 pytest.importorskip("vlm_vpr_ros.maps.indexes")  # format v2 / pq (issue 11)
 
-from vlm_vpr_ros.imageio import load_image  # noqa: E402
-from vlm_vpr_ros.map_build import assemble_map  # noqa: E402
-from vlm_vpr_ros.map_edit import add_references, remove_references  # noqa: E402
-from vlm_vpr_ros.map_io import ReferenceMap  # noqa: E402
+from vlm_vpr_ros.files.images import load_image  # noqa: E402
+from vlm_vpr_ros.maps.assemble import assemble_map  # noqa: E402
+from vlm_vpr_ros.maps.edit import add_references, remove_references  # noqa: E402
+from vlm_vpr_ros.maps.reference_map import ReferenceMap  # noqa: E402
 from vlm_vpr_ros.maps.indexes import PQ_MIN_REFS  # noqa: E402
-from vlm_vpr_ros.pipeline import LocalizationPipeline  # noqa: E402
+from vlm_vpr_ros.localization.pipeline import LocalizationPipeline  # noqa: E402
 
 
 @pytest.fixture(scope="module")

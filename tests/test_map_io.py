@@ -6,11 +6,11 @@ import shutil
 import numpy as np
 import pytest
 
-from vlm_vpr_ros import map_build
+from vlm_vpr_ros.maps import build_images as map_build
 from vlm_vpr_ros.errors import DataError, MapError
-from vlm_vpr_ros.map_build import build_map, read_coords_csv
-from vlm_vpr_ros.map_io import ReferenceMap
-from vlm_vpr_ros.pipeline import LocalizationPipeline
+from vlm_vpr_ros.maps.build_images import build_map, read_coords_csv
+from vlm_vpr_ros.maps.reference_map import ReferenceMap
+from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
 
 
 @pytest.fixture()
@@ -34,7 +34,7 @@ def test_round_trip_and_manifest(demo_map, demo_data):
             assert rows[rid] == pytest.approx((la, lo))
     # descriptors stored = descriptors recomputed with the map's own fitted descriptor
     pipe = LocalizationPipeline.open(demo_map)
-    from vlm_vpr_ros.imageio import load_image
+    from vlm_vpr_ros.files.images import load_image
 
     sub = m.submaps[0]
     stored = sub.index.reconstruct_n(0, sub.count)
@@ -154,9 +154,11 @@ def test_interrupted_build_resumes_without_redoing_chunks(tmp_path, demo_data, m
     assert sorted(p.name for p in tmp_path.iterdir()) == ["m"]
 
 
-def test_with_partition_keeps_references_and_descriptors(demo_map):
+def test_repartition_keeps_references_and_descriptors(demo_map):
+    from vlm_vpr_ros.maps.assemble import repartition
+
     m = ReferenceMap.load(demo_map)
-    c = m.with_partition("country")
+    c = repartition(m, "country")
     assert c.partition_method == "country" and c.n_references == m.n_references
     assert len(c.submaps) == 48  # the demo images come from 48 countries
     key = {i: d for i, d in zip(m.all_ids(), m.all_descriptors())}

@@ -16,11 +16,11 @@ import pytest
 from node_harness import domain_id, image_msg, node_and_client
 from vlm_vpr_ros.errors import MapError
 from vlm_vpr_ros.geodesy import haversine_km
-from vlm_vpr_ros.imageio import load_image
-from vlm_vpr_ros.map_edit import add_references
-from vlm_vpr_ros.pipeline import LocalizationPipeline
+from vlm_vpr_ros.files.images import load_image
+from vlm_vpr_ros.maps.edit import add_references
+from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
 from vlm_vpr_ros.priors import create_prior_provider
-from vlm_vpr_ros.runtime import Frame, QueryRuntime, RuntimeConfig
+from vlm_vpr_ros.runtime.worker import Frame, QueryRuntime, RuntimeConfig
 
 pytestmark = pytest.mark.timeout(150)
 NEW = 50  # a demo image that only the second half of the references contains
@@ -149,20 +149,20 @@ def test_reload_checks_as_much_as_the_start_did(half, tmp_path, monkeypatch):
     """Opened without verify_map (the default), a reload hashes no index, coordinate or id file
     (a 4.1M map is 4.5 GB; only the small calibration.json is always checked) but still
     refuses a file whose size no longer matches the manifest."""
-    import vlm_vpr_ros.map_io as map_io
+    from vlm_vpr_ros.maps import format as map_format
 
     _, src = half
     map_dir = tmp_path / "map"
     shutil.copytree(src, map_dir)
     pipe = LocalizationPipeline.open(map_dir)
     assert not pipe.verify and LocalizationPipeline.open(map_dir, verify=True).verify
-    hashed, real = [], map_io.sha256_file
+    hashed, real = [], map_format.file_sha256
 
     def spy(path):
         hashed.append(Path(path).name)
         return real(path)
 
-    monkeypatch.setattr(map_io, "sha256_file", spy)
+    monkeypatch.setattr(map_format, "file_sha256", spy)
     new = pipe.reloaded()
     assert new.map.n_references == pipe.map.n_references and not new.verify
     assert set(hashed) <= {"calibration.json"}, hashed

@@ -12,11 +12,11 @@ import pytest
 
 from vlm_vpr_ros.cli import main
 from vlm_vpr_ros.errors import DataError, MapError
-from vlm_vpr_ros.localizer import Localizer, LocalizerConfig
-from vlm_vpr_ros.map_build import assemble_map
-from vlm_vpr_ros.map_io import ReferenceMap
-from vlm_vpr_ros.maps import build as mbuild
-from vlm_vpr_ros.maps.build import build_from_descriptors
+from vlm_vpr_ros.localization.localizer import Localizer, LocalizerConfig
+from vlm_vpr_ros.maps.assemble import assemble_map
+from vlm_vpr_ros.maps.reference_map import ReferenceMap
+from vlm_vpr_ros.maps import build_descriptors as mbuild
+from vlm_vpr_ros.maps.build_descriptors import build_from_descriptors
 from vlm_vpr_ros.priors.base import Prior, PriorResult
 
 IDENT = {"name": "synthetic", "dim": 32, "config": {}, "preprocessing": {}}
@@ -163,7 +163,7 @@ def test_build_from_single_npy_and_localize_query_descriptors(ref512, tmp_path, 
     assert m.descriptor_identity["weights_sha256"] is None  # no weights were needed
     # localize precomputed query descriptors: no descriptor model may be created
     import vlm_vpr_ros.descriptors as D
-    import vlm_vpr_ros.pipeline as P
+    import vlm_vpr_ros.maps.reference_map as P
 
     def no_model(*a, **k):
         pytest.fail("a descriptor model was created")
@@ -300,7 +300,7 @@ def test_fitted_descriptor_state_from_describe_json(demo_map, tmp_path):
                                   m.descriptor_state else 0,
                                   src.descriptor_state["codebook"] if "codebook" in
                                   src.descriptor_state else 0)
-    from vlm_vpr_ros.pipeline import LocalizationPipeline
+    from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
 
     LocalizationPipeline.open(tmp_path / "m")  # the query-time descriptor matches the map
 
@@ -320,7 +320,7 @@ def test_interrupted_descriptor_build_resumes(ref512, tmp_path, monkeypatch):
     args = (d / "desc.npy", d / "coords.csv", tmp_path / "m", "cosplace")
     with pytest.raises(KeyboardInterrupt):
         build_from_descriptors(*args, clusters=4, index="fp16", progress=False)
-    work = tmp_path / ".m.partial" / "work"  # staged beside the target (vlm_vpr_ros.outputs)
+    work = tmp_path / ".m.partial" / "work"  # staged beside the target (vlm_vpr_ros.files.outputs)
     assert len(list((work / "subs").glob("*.json"))) == 2
     calls["n"] = -100
     m = build_from_descriptors(*args, clusters=4, index="fp16", progress=False)
@@ -444,7 +444,7 @@ def test_file_replaced_atomically_after_open_keeps_serving(pq_map, ref512, tmp_p
 
 def test_map_remove_keeps_pq_submaps_searchable(pq_map, ref512, tmp_path):
     """issue 13's map edit on a v2 pq map: rewritten submaps stay pq (shared codebook)."""
-    from vlm_vpr_ros.map_edit import remove_references
+    from vlm_vpr_ros.maps.edit import remove_references
 
     d, x, *_ = ref512
     out = tmp_path / "m"

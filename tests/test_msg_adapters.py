@@ -12,7 +12,7 @@ import pytest
 from msg_adapters.image import (SUPPORTED_ENCODINGS, compressed_to_rgb, encoded_bytes,
                                 image_to_rgb, message_to_rgb, stamp_ns)
 from vlm_vpr_ros.errors import ImageDecodeError
-from vlm_vpr_ros.imageio import load_image
+from vlm_vpr_ros.files.images import load_image
 
 RNG = np.random.default_rng(7)
 REF = RNG.integers(0, 256, size=(24, 30, 3), dtype=np.uint8)  # H=24, W=30

@@ -11,7 +11,7 @@ import pytest
 import yaml
 
 from vlm_vpr_ros.errors import ConfigError
-from vlm_vpr_ros.node_config import PARAMETERS, NodeConfig, from_params
+from vlm_vpr_ros.runtime.params import NodeConfig, PARAMETERS, from_params
 
 LAUNCH = Path(__file__).resolve().parents[1] / "launch_scripts"
 
@@ -80,8 +80,8 @@ def test_launch_file_is_valid_python_naming_the_console_script():
             "prior_provider", "lifecycle", "autostart", "fastdds_profile"} <= declared
     assert '[share, "launch",' in src and '"vlm_vpr_params.yaml"]' in src  # installed
     setup = (LAUNCH.parent / "setup.py").read_text()
-    assert "vlm_vpr_node = vlm_vpr_ros.node:main" in setup
-    assert "vlm_vpr_lifecycle_node = vlm_vpr_ros.node:lifecycle_main" in setup
+    assert "vlm_vpr_node = vlm_vpr_ros.ros.node:main" in setup
+    assert "vlm_vpr_lifecycle_node = vlm_vpr_ros.ros.node:lifecycle_main" in setup
 
 
 def test_run_node_script_rejects_bad_parameters_clearly(tmp_path):

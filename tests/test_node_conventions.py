@@ -13,8 +13,8 @@ from pathlib import Path
 import pytest
 
 from node_harness import GraphClient, NodeProcess, domain_id, image_msg, ros_env
-from vlm_vpr_ros.imageio import load_image
-from vlm_vpr_ros.node_config import PARAMETER_SPECS
+from vlm_vpr_ros.files.images import load_image
+from vlm_vpr_ros.runtime.params import PARAMETER_SPECS
 
 pytestmark = pytest.mark.timeout(120)
 REPO = Path(__file__).resolve().parents[1]
@@ -189,7 +189,7 @@ def test_wrong_type_next_to_a_params_file_stops_start_up(demo_map, how):
     if how == "run_node.sh":
         cmd = [str(REPO / "launch_scripts" / "run_node.sh"), *bad]
     elif how == "lifecycle":
-        cmd = [sys.executable, "-m", "vlm_vpr_ros.node", "--lifecycle", "--ros-args",
+        cmd = [sys.executable, "-m", "vlm_vpr_ros.ros.node", "--lifecycle", "--ros-args",
                "--params-file", str(PARAMS), *bad]
     else:
         exe = Path(sys.executable).with_name("vlm_vpr_node")
@@ -207,7 +207,7 @@ def test_wrong_type_next_to_a_params_file_stops_start_up(demo_map, how):
 def test_unreadable_params_file_is_one_fatal_line(tmp_path):
     bad = tmp_path / "bad.yaml"
     bad.write_text("/**:\n  ros__parameters:\n    top_p: [1, 2\n")
-    proc = subprocess.run([sys.executable, "-m", "vlm_vpr_ros.node", "--ros-args",
+    proc = subprocess.run([sys.executable, "-m", "vlm_vpr_ros.ros.node", "--ros-args",
                            "--params-file", str(bad)], capture_output=True, text=True,
                           timeout=60, env=ros_env(domain_id()), cwd=REPO)
     assert proc.returncode == 2 and "invalid YAML" in proc.stderr, proc.stderr

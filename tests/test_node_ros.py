@@ -15,7 +15,7 @@ import pytest
 
 from node_harness import compressed_msg, domain_id, image_msg, node_and_client, stamp_of
 from vlm_vpr_ros.geodesy import haversine_km
-from vlm_vpr_ros.imageio import encode_jpeg, load_image
+from vlm_vpr_ros.files.images import encode_jpeg, load_image
 
 pytestmark = pytest.mark.timeout(120)
 QUERY = "546314506564628.jpg"  # Sanluri, Sardinia

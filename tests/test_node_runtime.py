@@ -12,11 +12,11 @@ import pytest
 
 from msg_adapters.image import message_to_rgb
 from vlm_vpr_ros.geodesy import haversine_km
-from vlm_vpr_ros.imageio import load_image
-from vlm_vpr_ros.pipeline import LocalizationPipeline
+from vlm_vpr_ros.files.images import load_image
+from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
 from vlm_vpr_ros.priors import create_prior_provider
 from vlm_vpr_ros.priors.base import Prior, PriorProvider, PriorQuery, PriorResult
-from vlm_vpr_ros.runtime import Frame, QueryRuntime, RuntimeConfig, outcome_summary
+from vlm_vpr_ros.runtime.worker import Frame, QueryRuntime, RuntimeConfig, outcome_summary
 
 pytestmark = pytest.mark.timeout(60)
 QUERY = "546314506564628.jpg"  # Sanluri, Sardinia
@@ -316,7 +316,7 @@ def test_runtime_config_rejects_bad_values():
 
 
 def test_diagnostics_warn_when_the_camera_goes_silent(monkeypatch):
-    from vlm_vpr_ros import runtime_stats
+    from vlm_vpr_ros.runtime import stats as runtime_stats
 
     monkeypatch.setattr(runtime_stats, "NO_FRAMES_WARN_S", 0.2)
     stats = runtime_stats.RuntimeStats("none", "continuous")

@@ -5,7 +5,7 @@ import pytest
 
 from vlm_vpr_ros.errors import ConfigError
 from vlm_vpr_ros.geodesy import haversine_km, latlon_to_unit
-from vlm_vpr_ros.partition import country_codes, make_partition, nearest_centroids
+from vlm_vpr_ros.maps.partition import country_codes, make_partition, nearest_centroids
 
 
 def test_country_codes_of_known_cities():

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from vlm_vpr_ros.geodesy import THRESHOLDS_KM, accuracy_table
-from vlm_vpr_ros.plots import (_extent, cdf_percent, land_points, plot_error_cdf,
-                               plot_topp_ablation, plot_world_map)
+from vlm_vpr_ros.evaluation.plots import (_extent, cdf_percent, land_points, plot_error_cdf,
+                                          plot_topp_ablation, plot_world_map)
 
 
 def _png(path):

@@ -23,14 +23,15 @@ import pytest
 
 from ray_helpers import (DESCRIPTOR, DESCRIPTOR_OPTIONS, OBJECT_STORE, LocalCluster, free_port, make_reference_set,
                          ray_env)
-from vlm_vpr_ros.distributed.describe import DescribeOptions, describe_items, describe_to_shards
+from vlm_vpr_ros.distributed.describe import DescribeOptions, describe_to_shards
+from vlm_vpr_ros.distributed.engines import describe_items
 from vlm_vpr_ros.distributed.shards import ShardStore, read_shards
 from vlm_vpr_ros.distributed.sources import ImageSource
 from vlm_vpr_ros.errors import MapError
-from vlm_vpr_ros.imageio import load_image
-from vlm_vpr_ros.map_build import build_map
-from vlm_vpr_ros.map_io import ReferenceMap
-from vlm_vpr_ros.pipeline import LocalizationPipeline
+from vlm_vpr_ros.files.images import load_image
+from vlm_vpr_ros.maps.build_images import build_map
+from vlm_vpr_ros.maps.reference_map import ReferenceMap
+from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
 from vlm_vpr_ros.priors.base import Prior, PriorResult
 
 CLUSTERS = 4

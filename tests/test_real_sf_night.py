@@ -4,9 +4,9 @@ another date than their match); skipped when ../shared is absent. README reports
 import pytest
 
 from vlm_vpr_ros.geodesy import haversine_km
-from vlm_vpr_ros.imageio import load_image
-from vlm_vpr_ros.map_build import build_map, read_coords_csv
-from vlm_vpr_ros.pipeline import LocalizationPipeline
+from vlm_vpr_ros.files.images import load_image
+from vlm_vpr_ros.maps.build_images import build_map, read_coords_csv
+from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
 
 
 @pytest.fixture(scope="module")
@@ -77,7 +77,7 @@ def _offset(lat, lon, km, bearing):
 
 def _run(ref_map, desc, truth, priors, fold=None, **cfg):
     """(R@1 within 25 m, coverage of the 68 % and 95 % radii, wrong-continent answers)."""
-    from vlm_vpr_ros.localizer import Localizer, LocalizerConfig
+    from vlm_vpr_ros.localization.localizer import Localizer, LocalizerConfig
     from vlm_vpr_ros.priors.base import Prior, PriorResult
 
     loc = Localizer(ref_map, LocalizerConfig(**cfg))
@@ -146,8 +146,9 @@ def test_twin_city_prior_resolves_the_look_alikes(sf, sf_queries, tmp_path):
 
     import numpy as np
 
-    from vlm_vpr_ros.map_build import assemble_map, write_map_calibration
-    from vlm_vpr_ros.map_io import ReferenceMap
+    from vlm_vpr_ros.maps.assemble import assemble_map
+    from vlm_vpr_ros.maps.build_images import write_map_calibration
+    from vlm_vpr_ros.maps.reference_map import ReferenceMap
 
     root, map_dir = sf
     desc, truth = sf_queries

@@ -30,7 +30,7 @@ def test_redact_patterns():
 
 
 def test_check_not_inside(tmp_path):
-    from vlm_vpr_ros.outputs import check_not_inside
+    from vlm_vpr_ros.files.outputs import check_not_inside
 
     bag = tmp_path / "bag"
     bag.mkdir()
@@ -42,7 +42,7 @@ def test_check_not_inside(tmp_path):
 
 
 def test_staged_output_lock_and_swap(tmp_path):
-    from vlm_vpr_ros.outputs import StagedOutput
+    from vlm_vpr_ros.files.outputs import StagedOutput
 
     target = tmp_path / "ev"
     with StagedOutput(target, "evaluation") as s:
@@ -63,7 +63,7 @@ def test_staged_output_lock_and_swap(tmp_path):
 
 
 def test_unique_rows_and_ranges(tmp_path):
-    from vlm_vpr_ros.csvio import parse_latlon, unique_rows
+    from vlm_vpr_ros.files.csvio import parse_latlon, unique_rows
 
     assert unique_rows([(2, "a", 1), (3, "b", 2), (4, "a", 1)], "x.csv") == {"a": 1, "b": 2}
     with pytest.raises(DataError, match="lines 2 and 4"):
@@ -80,10 +80,10 @@ def test_relocalize_gate_answers_every_caller_and_shares_the_query(demo_map, dem
     from types import SimpleNamespace
 
     from msg_adapters.image import message_to_rgb
-    from vlm_vpr_ros.imageio import load_image
-    from vlm_vpr_ros.pipeline import LocalizationPipeline
+    from vlm_vpr_ros.files.images import load_image
+    from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
     from vlm_vpr_ros.priors.base import PriorProvider
-    from vlm_vpr_ros.runtime import Frame, QueryRuntime, RuntimeConfig
+    from vlm_vpr_ros.runtime.worker import Frame, QueryRuntime, RuntimeConfig
 
     class Hung(PriorProvider):
         name = "hung"

@@ -8,7 +8,6 @@ import csv
 import json
 import logging
 import math
-import shutil
 import subprocess
 import sys
 
@@ -21,11 +20,11 @@ from vlm_vpr_ros.bags.teach import (TeachConfig, _Fixes, distance_m, extract_ref
 from vlm_vpr_ros.cli import main
 from vlm_vpr_ros.errors import BagError, ConfigError
 from vlm_vpr_ros.geodesy import haversine_km
-from vlm_vpr_ros.imageio import load_image
-from vlm_vpr_ros.map_build import read_coords_csv
-from vlm_vpr_ros.map_edit import verify_images
-from vlm_vpr_ros.map_io import ReferenceMap
-from vlm_vpr_ros.pipeline import LocalizationPipeline
+from vlm_vpr_ros.files.images import load_image
+from vlm_vpr_ros.maps.build_images import read_coords_csv
+from vlm_vpr_ros.maps.map_images import verify_images
+from vlm_vpr_ros.maps.reference_map import ReferenceMap
+from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
 
 S = 1_000_000_000
 

@@ -13,7 +13,7 @@ import pytest
 from chat_server import ChatServer
 
 from vlm_vpr_ros.cli import main
-from vlm_vpr_ros.node_config import from_params
+from vlm_vpr_ros.runtime.params import from_params
 from vlm_vpr_ros.priors import PriorQuery, create_prior_provider
 
 KEY = "sk-dialect-canary-0123456789abcdefXYZ"
@@ -233,7 +233,7 @@ def test_node_gets_a_structured_prior_from_a_reasoning_model(demo_map, demo_data
     it was read, and the key is not in the node's log."""
     from node_harness import domain_id, image_msg, node_and_client
 
-    from vlm_vpr_ros.imageio import load_image
+    from vlm_vpr_ros.files.images import load_image
 
     monkeypatch.setenv(ENV, KEY)  # the node process inherits it
     rgb = load_image(sorted((demo_data / "images").glob("*.jpg"))[0])
@@ -261,7 +261,7 @@ def test_node_gets_a_structured_prior_from_a_reasoning_model(demo_map, demo_data
 
 def test_results_written_before_the_prior_parse_column_resume(tmp_path):
     """`localize --resume` keeps the rows of a results file written before `prior_parse`."""
-    from vlm_vpr_ros.batch import RESULT_FIELDS, read_done_rows
+    from vlm_vpr_ros.localization.batch import RESULT_FIELDS, read_done_rows
 
     old = [k for k in RESULT_FIELDS if k != "prior_parse"]
     path = tmp_path / "res.csv"

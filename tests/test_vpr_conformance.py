@@ -22,7 +22,7 @@ from vlm_vpr_ros.descriptors.deep.specs import IMAGENET_MEAN, IMAGENET_STD, get_
 from vlm_vpr_ros.descriptors.deep.torch_descriptor import DeepDescriptor  # noqa: E402
 from vlm_vpr_ros.descriptors.deep.weights import build_model, recipe_state_dict  # noqa: E402
 from vlm_vpr_ros.errors import ImageDecodeError  # noqa: E402
-from vlm_vpr_ros.imageio import load_image  # noqa: E402
+from vlm_vpr_ros.files.images import load_image  # noqa: E402
 
 MODELS = ("cosplace", "eigenplaces", "mixvpr", "mixvpr_4096", "boq")
 TOL = 1e-5  # per element, as suggested by the fixture README (observed noise <= 5e-7)

@@ -19,10 +19,10 @@ torch = pytest.importorskip("torch")
 from vlm_vpr_ros.descriptors import create_descriptor  # noqa: E402
 from vlm_vpr_ros.descriptors.deep.specs import get_spec  # noqa: E402
 from vlm_vpr_ros.descriptors.deep.torch_descriptor import DeepDescriptor  # noqa: E402
-from vlm_vpr_ros.descriptors.deep.weights import (build_model, file_sha256,  # noqa: E402
-                                                  recipe_state_dict, save_state_dict)
+from vlm_vpr_ros.descriptors.deep.weights import (build_model, file_sha256, recipe_state_dict,
+                                                  save_state_dict)
 from vlm_vpr_ros.errors import DescriptorError, MapError  # noqa: E402
-from vlm_vpr_ros.imageio import load_image  # noqa: E402
+from vlm_vpr_ros.files.images import load_image  # noqa: E402
 
 VLM_VPR = [sys.executable, "-m", "vlm_vpr_ros.cli"]
 MIX = get_spec("mixvpr")  # the smallest model (10 M parameters, 40 MB checkpoint)
@@ -146,8 +146,8 @@ def test_cli_fetch_list_check(hub, ckpt, tmp_path):
 def test_map_records_and_enforces_descriptor(tmp_path, demo_data, ckpt, caplog):
     """A map built with a deep descriptor stores model/release/preprocessing (no paths) and a
     pipeline with another descriptor refuses it."""
-    from vlm_vpr_ros.map_build import build_map
-    from vlm_vpr_ros.pipeline import LocalizationPipeline
+    from vlm_vpr_ros.maps.build_images import build_map
+    from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
 
     rows = list(csv.DictReader(open(demo_data / "coords.csv")))[:4]
     coords = tmp_path / "coords.csv"

@@ -21,7 +21,7 @@ def test_relocalize_burst_all_answered_one_shared_query(demo_map, demo_data, tmp
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from std_srvs.srv import Trigger
 
-    from vlm_vpr_ros.imageio import load_image
+    from vlm_vpr_ros.files.images import load_image
 
     rgb = load_image(sorted((demo_data / "images").iterdir())[0])
     with ChatServer("hang") as srv:

@@ -52,14 +52,14 @@ def test_tiny_and_huge_reference_skipped(cli, tmp_path, demo_data):
     assert rc == 0 and "8 references" in out
     assert f"{images / names[0]}: unusable size 4x4 (too small" in cli.text
     assert f"{images / names[1]}: unusable size 10001x10001 (too large" in cli.text
-    from vlm_vpr_ros.map_io import ReferenceMap
+    from vlm_vpr_ros.maps.reference_map import ReferenceMap
 
     assert ReferenceMap.load(tmp_path / "m").manifest["source"]["skipped"] == names[:2]
 
 
 @pytest.mark.fault("image_huge_reference")
 def test_huge_image_refused_before_decoding(monkeypatch):
-    from vlm_vpr_ros import imageio
+    from vlm_vpr_ros.files import images as imageio
     from vlm_vpr_ros.errors import ImageDecodeError
 
     def no_decode(*a, **k):
@@ -176,7 +176,7 @@ def test_build_overwrite_refuses_non_map(cli, user_docs, demo_data, tmp_path):
 
 @pytest.mark.fault("out_build_fails_keeps_old")
 def test_failed_rebuild_keeps_old_map(cli, map_copy, tmp_path, demo_data):
-    from vlm_vpr_ros.map_io import ReferenceMap
+    from vlm_vpr_ros.maps.reference_map import ReferenceMap
 
     before = sha_tree(map_copy)
     empty = tmp_path / "empty"
@@ -251,7 +251,7 @@ def _rows(p):
 @pytest.mark.fault("partial_query_exception")
 def test_query_exception_is_a_flagged_row(cli, demo_map, demo_data, queries, tmp_path,
                                           monkeypatch):
-    from vlm_vpr_ros.pipeline import LocalizationPipeline
+    from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
 
     real = LocalizationPipeline.localize_descriptor
     calls = {"n": 0}
@@ -273,7 +273,7 @@ def test_query_exception_is_a_flagged_row(cli, demo_map, demo_data, queries, tmp
 
 @pytest.mark.fault("partial_interrupt_resume")
 def test_interrupt_then_resume(cli, demo_map, demo_data, queries, tmp_path, monkeypatch):
-    from vlm_vpr_ros import batch
+    from vlm_vpr_ros.localization import batch
 
     args = ("localize", "--map", demo_map, "--images", demo_data / "images", "--queries",
             queries, "--priors", demo_data / "priors_osv5m_baseline.csv")
@@ -319,13 +319,16 @@ class _FullDisk:
 
 @pytest.mark.fault("disk_full_build")
 def test_disk_full_during_build(cli, map_copy, demo_data, tmp_path, monkeypatch, caplog):
-    from vlm_vpr_ros import map_build, map_io
-    from vlm_vpr_ros.map_io import ReferenceMap
+    from vlm_vpr_ros.files import atomic
+    from vlm_vpr_ros.maps import build_images as map_build
+    from vlm_vpr_ros.maps.reference_map import ReferenceMap
 
     monkeypatch.setattr(map_build, "CHUNK", 8)
     before = sha_tree(map_copy)
-    full = _FullDisk(after=4)  # job.json, fitted state, one chunk (2 files) ... then full
-    monkeypatch.setattr(map_io, "os", full)
+    # two fsyncs per file (the file, then its folder): job.json, fitted state, one chunk
+    # (2 files) ... then full
+    full = _FullDisk(after=8)
+    monkeypatch.setattr(atomic, "os", full)
     coords, _ = _subset(tmp_path, demo_data, 24)
     args = ("build-map", "--images", demo_data / "images", "--coords", coords, "--out",
             map_copy, "--overwrite", *FAST)
@@ -335,7 +338,7 @@ def test_disk_full_during_build(cli, map_copy, demo_data, tmp_path, monkeypatch,
     assert leftovers == []  # no .tmpNNNN files
     work = tmp_path / ".map.partial" / "work"
     assert (work / "descriptor_state.npz").exists()
-    monkeypatch.setattr(map_io, "os", os)  # space freed
+    monkeypatch.setattr(atomic, "os", os)  # space freed
     rc, out, _ = cli(*args)
     assert rc == 0 and "resuming the partial build" in cli.text
     assert ReferenceMap.load(map_copy).partition_method == "none"
@@ -344,7 +347,7 @@ def test_disk_full_during_build(cli, map_copy, demo_data, tmp_path, monkeypatch,
 
 @pytest.mark.fault("disk_full_localize")
 def test_disk_full_while_streaming(cli, demo_map, demo_data, queries, tmp_path, monkeypatch):
-    from vlm_vpr_ros import batch
+    from vlm_vpr_ros.localization import batch
 
     real = batch.ResultsStream.write
 
@@ -380,7 +383,7 @@ def test_kill9_mid_build_then_resume(tmp_path, demo_data):
     assert done.returncode == 0, done.stderr
     assert "resumed fitted descriptor state" in done.stderr
     assert "Traceback" not in done.stderr
-    from vlm_vpr_ros.map_io import ReferenceMap
+    from vlm_vpr_ros.maps.reference_map import ReferenceMap
 
     assert ReferenceMap.load(out).n_references == 30
     assert sorted(p.name for p in tmp_path.iterdir()) == ["c.csv", "m"]

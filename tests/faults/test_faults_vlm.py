@@ -186,7 +186,7 @@ def test_node_refuses_a_non_ascii_key_at_start(demo_map, tmp_path):
 
     env = {**ros_env(domain_id()), "VLM_FAULT_KEY": CANARY_ENV + "…"}
     proc = subprocess.run(
-        [sys.executable, "-m", "vlm_vpr_ros.node", "--ros-args", "-p", f"map_dir:={demo_map}",
+        [sys.executable, "-m", "vlm_vpr_ros.ros.node", "--ros-args", "-p", f"map_dir:={demo_map}",
          "-p", "prior_provider:=openai", "-p", "prior.api_key_env:=VLM_FAULT_KEY",
          "-p", "prior.base_url:=http://127.0.0.1:9/v1"],
         capture_output=True, text=True, timeout=90, env=env)

@@ -21,7 +21,7 @@ def run_bag_demo(out_dir: str | os.PathLike[str], map_dir: str | os.PathLike[str
     from vlm_vpr_ros.bags.evaluate import evaluate_bag
     from vlm_vpr_ros.bags.make import make_bag
     from vlm_vpr_ros.bags.reader import open_bag
-    from vlm_vpr_ros.pipeline import LocalizationPipeline
+    from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
     from vlm_vpr_ros.priors import create_prior_provider
 
     out = Path(out_dir)

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import bisect
 import collections
-import csv
 import dataclasses
 import logging
 import os
@@ -22,8 +21,9 @@ from typing import Any, Iterator
 from vlm_vpr_ros.bags.frames import Frame, GroundTruth, iter_frames, read_ground_truth
 from vlm_vpr_ros.bags.reader import BagReader
 from vlm_vpr_ros.errors import BagError, VlmVprError
-from vlm_vpr_ros.evaluation import errors_km, summarize
-from vlm_vpr_ros.map_io import atomic_write_json
+from vlm_vpr_ros.files.csvio import write_csv_atomic
+from vlm_vpr_ros.evaluation.metrics import errors_km, summarize
+from vlm_vpr_ros.files.atomic import atomic_write_json
 from vlm_vpr_ros.priors.base import PriorProvider, PriorQuery, wait_prior
 
 log = logging.getLogger(__name__)
@@ -86,9 +86,9 @@ def evaluate_bag(bag: BagReader, pipeline: Any, provider: PriorProvider,
     """Run the whole evaluation; returns ``{"n", "accuracy", "median_km", "details"}``.
 
     ``out_dir`` is written next to itself and swapped in when complete
-    (:mod:`vlm_vpr_ros.outputs`): never inside the bag, and an existing folder is replaced
+    (:mod:`vlm_vpr_ros.files.outputs`): never inside the bag, and an existing folder is replaced
     only with ``overwrite`` and only when it is an earlier evaluation."""
-    from vlm_vpr_ros.outputs import StagedOutput, check_not_inside
+    from vlm_vpr_ros.files.outputs import StagedOutput, check_not_inside
 
     check_not_inside(out_dir, [bag.path])
     with StagedOutput(out_dir, "evaluation", overwrite) as stage:
@@ -198,12 +198,7 @@ def _localize_frame(frame: Frame, fut: Any, pipeline: Any, provider: PriorProvid
 
 
 def _write_csv(path: Path, rows: list[dict]) -> None:
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    with tmp.open("w", newline="", encoding="utf-8") as fh:
-        w = csv.DictWriter(fh, fieldnames=FRAME_FIELDS, extrasaction="ignore")
-        w.writeheader()
-        w.writerows(rows)
-    os.replace(tmp, path)
+    write_csv_atomic(path, FRAME_FIELDS, rows)
 
 
 def _write_estimates(path: Path, items: list[tuple]) -> Path:
@@ -229,7 +224,7 @@ def _write_estimates(path: Path, items: list[tuple]) -> Path:
 
 
 def _plots(out: Path, rows: list[dict], summary: dict, name: Path) -> dict:
-    from vlm_vpr_ros.plots import plot_error_cdf, plot_world_map
+    from vlm_vpr_ros.evaluation.plots import plot_error_cdf, plot_world_map
 
     gt = [(float(r["gt_lat"]), float(r["gt_lon"])) for r in rows]
     est = [None if r["lat"] == "" else (float(r["lat"]), float(r["lon"])) for r in rows]

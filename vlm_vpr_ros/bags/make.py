@@ -33,8 +33,8 @@ def make_bag(images_dir: str | os.PathLike[str], coords_csv: str | os.PathLike[s
     ``NavSatFix`` ground truth of the same stamp. With ``compressed`` JPEG/PNG files are stored
     as they are (no re-encoding). Returns paths, topics and counts; ``frames.csv`` beside the
     bag maps stamps back to file names (so recorded priors keyed by file can be used)."""
-    from vlm_vpr_ros.map_build import read_coords_csv
-    from vlm_vpr_ros.outputs import StagedOutput, check_not_inside
+    from vlm_vpr_ros.maps.build_images import read_coords_csv
+    from vlm_vpr_ros.files.outputs import StagedOutput, check_not_inside
 
     if not (rate_hz > 0 and rate_hz < 1e6):
         raise ConfigError(f"--rate must be a positive frequency in Hz, got {rate_hz}")
@@ -54,7 +54,7 @@ def make_bag(images_dir: str | os.PathLike[str], coords_csv: str | os.PathLike[s
 def _make(images_dir: Path, rows, coords_csv, out: Path, rate_hz: float, compressed: bool,
           topic_prefix: str, gt_topic: str, frame_id: str, start_time_ns: int | None,
           compression: str, progress: bool) -> dict:
-    from vlm_vpr_ros.imageio import decode_image_bytes, encode_jpeg
+    from vlm_vpr_ros.files.images import decode_image_bytes, encode_jpeg
 
     period_ns = int(round(1e9 / rate_hz))
     t0 = int(start_time_ns if start_time_ns is not None else now_ns())

@@ -26,6 +26,7 @@ from pathlib import Path
 from vlm_vpr_ros.bags.messages import COMPRESSED, IMAGE_TYPES, NAVSATFIX, stamp_ns
 from vlm_vpr_ros.bags.reader import BagReader, RawMessage, deserialize, open_bag
 from vlm_vpr_ros.errors import BagError, ConfigError, ImageDecodeError, MapError
+from vlm_vpr_ros.files.atomic import atomic_write_bytes
 
 log = logging.getLogger(__name__)
 
@@ -169,7 +170,7 @@ def _jpeg_bytes(msg, type_: str, what: str, quality: int) -> bytes:
     """The frame as JPEG bytes: a JPEG CompressedImage payload as it is (after checking it
     decodes), anything else decoded and re-encoded."""
     from vlm_vpr_ros.bags.frames import decode_compressed, decode_raw
-    from vlm_vpr_ros.imageio import decode_image_bytes, encode_jpeg
+    from vlm_vpr_ros.files.images import decode_image_bytes, encode_jpeg
 
     if type_ == COMPRESSED:
         data = bytes(msg.data)
@@ -248,7 +249,7 @@ def extract_references(bag_path: str | os.PathLike[str], out_images: str | os.Pa
         if (Path(out_images) / ref_id).exists():
             res.frames["duplicate_stamp"] += 1
             continue
-        _write(Path(out_images) / ref_id, data)
+        atomic_write_bytes(Path(out_images) / ref_id, data)
         res.references.append(TeachReference(ref_id, pos[0], pos[1], t))
         res.frames["kept"] += 1
         last_kept = pos
@@ -266,16 +267,9 @@ def extract_references(bag_path: str | os.PathLike[str], out_images: str | os.Pa
     return res
 
 
-def _write(path: Path, data: bytes) -> None:
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    with open(tmp, "wb") as fh:
-        fh.write(data)
-    os.replace(tmp, path)
-
-
 def write_coords(path: Path, refs: list[TeachReference]) -> None:
     """``file, lat, lon, stamp_ns`` of the references (the CSV build-map reads)."""
-    from vlm_vpr_ros.csvio import write_csv_atomic
+    from vlm_vpr_ros.files.csvio import write_csv_atomic
 
     write_csv_atomic(path, ["file", "lat", "lon", "stamp_ns"],
                      [{"file": r.id, "lat": repr(r.lat), "lon": repr(r.lon),
@@ -286,13 +280,14 @@ def build_map_from_bag(bag_path: str | os.PathLike[str], out_dir: str | os.PathL
                        config: TeachConfig | None = None, overwrite: bool = False,
                        progress: bool = True, **build_options):
     """``vlm-vpr build-map --bag``: extract the references, build the map next to ``out_dir``
-    with :func:`vlm_vpr_ros.map_build.build_map` (``build_options``: descriptor, partition, ...),
+    with :func:`vlm_vpr_ros.maps.build_images.build_map` (``build_options``: descriptor, partition, ...),
     store the images in it and move it into place. Returns (ReferenceMap, TeachResult)."""
-    from vlm_vpr_ros.map_build import build_map
-    from vlm_vpr_ros.map_edit import attach_images
-    from vlm_vpr_ros.map_io import ReferenceMap, atomic_write_json
+    from vlm_vpr_ros.maps.build_images import build_map
+    from vlm_vpr_ros.maps.map_images import attach_images
+    from vlm_vpr_ros.maps.reference_map import ReferenceMap
+    from vlm_vpr_ros.files.atomic import atomic_write_json
 
-    from vlm_vpr_ros.outputs import check_target
+    from vlm_vpr_ros.files.outputs import check_target
 
     out = Path(out_dir)
     if out.exists() and not overwrite:

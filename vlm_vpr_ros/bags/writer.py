@@ -10,7 +10,6 @@ into place when complete, so a half-written bag never appears under the final na
 
 from __future__ import annotations
 
-import csv
 import logging
 import os
 import shutil
@@ -24,6 +23,7 @@ import yaml
 from vlm_vpr_ros import __version__
 from vlm_vpr_ros.bags.msgdefs import full_definition, qos_profile, qos_yaml, type_hash
 from vlm_vpr_ros.errors import BagError
+from vlm_vpr_ros.files.csvio import write_csv_atomic
 
 log = logging.getLogger(__name__)
 
@@ -184,12 +184,7 @@ class Rosbag2McapWriter:
 
 def write_sidecar(path: Path, rows: list[dict]) -> None:
     """``frames.csv`` beside a made bag: which file each frame came from (for recorded priors)."""
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    with tmp.open("w", newline="", encoding="utf-8") as fh:
-        w = csv.DictWriter(fh, fieldnames=["index", "stamp_ns", "file", "lat", "lon"])
-        w.writeheader()
-        w.writerows(rows)
-    os.replace(tmp, path)
+    write_csv_atomic(path, ["index", "stamp_ns", "file", "lat", "lon"], rows)
 
 
 def now_ns() -> int:

@@ -67,7 +67,7 @@ def main(argv: list[str] | None = None) -> int:
         log.warning("interrupted")
         return 130
     except OSError as exc:  # disk full, permissions, a vanished file: one line, no traceback
-        from vlm_vpr_ros.outputs import describe_os_error
+        from vlm_vpr_ros.files.atomic import describe_os_error
 
         log.error("%s", describe_os_error(exc) if exc.filename else one_line(exc))
         log.debug("details", exc_info=True)

@@ -196,8 +196,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
 def cmd_evaluate_bag(args: argparse.Namespace) -> int:
     from vlm_vpr_ros.bags.evaluate import BagEvalConfig, evaluate_bag
     from vlm_vpr_ros.bags.reader import open_bag
-    from vlm_vpr_ros.evaluation import format_table
-    from vlm_vpr_ros.pipeline import LocalizationPipeline
+    from vlm_vpr_ros.evaluation.metrics import format_table
+    from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
 
     from vlm_vpr_ros.bags.messages import IMAGE_TYPES, NAVSATFIX
 
@@ -205,7 +205,7 @@ def cmd_evaluate_bag(args: argparse.Namespace) -> int:
     bag.find_topic(IMAGE_TYPES, args.image_topic, "camera images")  # fail before loading
     bag.find_topic((NAVSATFIX,), args.gt_topic, "ground truth")
     out = Path(args.out) if args.out else Path(str(Path(args.bag)).rstrip("/") + "_eval")
-    from vlm_vpr_ros.outputs import check_not_inside, check_target
+    from vlm_vpr_ros.files.outputs import check_not_inside, check_target
 
     check_not_inside(out, [bag.path])  # fail before loading the map
     check_target(out, "evaluation", args.overwrite)
@@ -236,12 +236,12 @@ def cmd_evaluate_bag(args: argparse.Namespace) -> int:
 
 
 def cmd_ablate(args: argparse.Namespace) -> int:
-    from vlm_vpr_ros.ablation import format_ablation, run_ablation
+    from vlm_vpr_ros.evaluation.ablation import format_ablation, run_ablation
     from vlm_vpr_ros.bags.ablate_inputs import ablation_inputs
     from vlm_vpr_ros.config import choose
-    from vlm_vpr_ros.map_io import atomic_write_json
-    from vlm_vpr_ros.pipeline import LocalizationPipeline
-    from vlm_vpr_ros.plots import plot_topp_ablation
+    from vlm_vpr_ros.files.atomic import atomic_write_json
+    from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
+    from vlm_vpr_ros.evaluation.plots import plot_topp_ablation
 
     try:
         top_ps = [int(x) for x in args.top_p.split(",") if x.strip()]

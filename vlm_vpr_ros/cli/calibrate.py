@@ -44,8 +44,8 @@ def _num(v) -> float | None:
 
 def calibration_ratios(results_csv, ground_truth_csv) -> dict[str, dict[str, list[float]]]:
     """error / radius per regime ("prior" / "no_prior") and level ("68" / "95")."""
-    from vlm_vpr_ros.csvio import read_table
-    from vlm_vpr_ros.evaluation import read_ground_truth
+    from vlm_vpr_ros.files.csvio import read_table
+    from vlm_vpr_ros.evaluation.metrics import read_ground_truth
     from vlm_vpr_ros.geodesy import haversine_km
 
     gt = read_ground_truth(ground_truth_csv)
@@ -72,11 +72,11 @@ def calibration_ratios(results_csv, ground_truth_csv) -> dict[str, dict[str, lis
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
-    from vlm_vpr_ros.fusion.calibration import (CALIBRATION_FORMAT, CALIBRATION_VERSION,
-                                                conformal_factor, load_calibration,
-                                                save_calibration)
-    from vlm_vpr_ros.localizer import Localizer
-    from vlm_vpr_ros.map_io import ReferenceMap
+    from vlm_vpr_ros.localization.fusion.calibration import (CALIBRATION_FORMAT,
+                                                             CALIBRATION_VERSION, conformal_factor,
+                                                             load_calibration, save_calibration)
+    from vlm_vpr_ros.localization.localizer import Localizer
+    from vlm_vpr_ros.maps.reference_map import ReferenceMap
 
     ref_map = ReferenceMap.load(args.map)
     loc = Localizer(ref_map)

@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 
 from vlm_vpr_ros.config import parse_kv
-from vlm_vpr_ros.csvio import write_csv_atomic  # noqa: F401  (re-exported for the CLI)
-from vlm_vpr_ros.localizer import FUSION_MODES, LocalizerConfig
+from vlm_vpr_ros.files.csvio import write_csv_atomic  # noqa: F401  (re-exported for the CLI)
+from vlm_vpr_ros.localization.localizer import FUSION_MODES, LocalizerConfig
 from vlm_vpr_ros.priors import PriorProvider, available_prior_providers, create_prior_provider
 
 

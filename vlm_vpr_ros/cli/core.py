@@ -144,7 +144,7 @@ def check_source_args(args: argparse.Namespace) -> None:
 
 
 def cmd_build_map(args: argparse.Namespace) -> int:
-    from vlm_vpr_ros.map_build import build_map
+    from vlm_vpr_ros.maps.build_images import build_map
 
     check_source_args(args)
     if args.bag:
@@ -165,7 +165,7 @@ def cmd_build_map(args: argparse.Namespace) -> int:
     sizing = {"ram_budget_mb": args.ram_budget_mb, "max_submap_size": args.max_submap_size,
               "rerank_factor": args.rerank_factor}
     if args.descriptors:
-        from vlm_vpr_ros.maps.build import build_from_descriptors
+        from vlm_vpr_ros.maps.build_descriptors import build_from_descriptors
 
         engine_options(args)  # Ray-only options without --engine ray are errors
         if args.engine == "ray":
@@ -197,7 +197,7 @@ def cmd_build_map(args: argparse.Namespace) -> int:
 
 def _localize_start(out: Path, resume: bool, overwrite: bool) -> list[dict]:
     """Check ``--out`` and return the rows kept from an earlier run (``--resume``)."""
-    from vlm_vpr_ros.batch import is_results_csv, read_done_rows
+    from vlm_vpr_ros.localization.batch import is_results_csv, read_done_rows
     from vlm_vpr_ros.errors import OutputError
 
     partial = out.with_name(out.name + ".partial")
@@ -222,7 +222,7 @@ def _localize_start(out: Path, resume: bool, overwrite: bool) -> list[dict]:
 
 
 def cmd_localize(args: argparse.Namespace) -> int:
-    from vlm_vpr_ros.map_build import read_file_column
+    from vlm_vpr_ros.files.csvio import read_file_column
 
     out = Path(args.out)
     files = read_file_column(args.queries)
@@ -231,8 +231,8 @@ def cmd_localize(args: argparse.Namespace) -> int:
         return _localize_descriptors(args, files)
     if not args.images:
         raise DataError("localize needs --images DIR (or --query-descriptors Q.npy)")
-    from vlm_vpr_ros.batch import ResultsStream, localize_files
-    from vlm_vpr_ros.pipeline import LocalizationPipeline
+    from vlm_vpr_ros.localization.batch import ResultsStream, localize_files
+    from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
 
     pipe = LocalizationPipeline.open(args.map, descriptor=args.descriptor,
                                      localizer=localizer_config(args),
@@ -250,7 +250,7 @@ def cmd_localize(args: argparse.Namespace) -> int:
             stream.write(row)
     except OSError as exc:  # disk full / permissions while streaming
         from vlm_vpr_ros.errors import OutputError
-        from vlm_vpr_ros.outputs import describe_os_error
+        from vlm_vpr_ros.files.atomic import describe_os_error
 
         raise OutputError(f"{describe_os_error(exc, stream.partial)}; {len(stream.rows)} "
                           f"rows kept there: continue with --resume") from None
@@ -272,11 +272,12 @@ def cmd_localize(args: argparse.Namespace) -> int:
 def _localize_descriptors(args: argparse.Namespace, files: list[str]) -> int:
     from tqdm import tqdm
 
-    from vlm_vpr_ros.batch import RESULT_FIELDS
-    from vlm_vpr_ros.csvio import write_csv_atomic
-    from vlm_vpr_ros.localizer import Localizer
-    from vlm_vpr_ros.map_io import ReferenceMap
-    from vlm_vpr_ros.maps.query import localize_descriptors, open_query_descriptors
+    from vlm_vpr_ros.localization.batch import RESULT_FIELDS
+    from vlm_vpr_ros.files.csvio import write_csv_atomic
+    from vlm_vpr_ros.localization.localizer import Localizer
+    from vlm_vpr_ros.maps.reference_map import ReferenceMap
+    from vlm_vpr_ros.localization.query_descriptors import (localize_descriptors,
+                                                            open_query_descriptors)
 
     ref_map = ReferenceMap.load(args.map).open_submaps()
     if args.descriptor and args.descriptor != ref_map.descriptor_identity["name"]:
@@ -299,7 +300,7 @@ def _localize_descriptors(args: argparse.Namespace, files: list[str]) -> int:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from vlm_vpr_ros.evaluation import evaluate_results_csv, format_table
+    from vlm_vpr_ros.evaluation.metrics import evaluate_results_csv, format_table
 
     summary, extra = evaluate_results_csv(args.results, args.ground_truth)
     if args.json:
@@ -326,6 +327,6 @@ def cmd_descriptors(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from vlm_vpr_ros.demo import run_demo
+    from vlm_vpr_ros.evaluation.demo import run_demo
 
     return run_demo(args.out, with_bag=not args.skip_bag)

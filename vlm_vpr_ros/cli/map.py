@@ -75,8 +75,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     q.set_defaults(func=cmd_upgrade)
 
 def cmd_map_add(args: argparse.Namespace) -> int:
-    from vlm_vpr_ros.map_build import read_coords_csv
-    from vlm_vpr_ros.map_edit import add_references
+    from vlm_vpr_ros.maps.build_images import read_coords_csv
+    from vlm_vpr_ros.maps.edit import add_references
 
     check_source_args(args)
     store = {"auto": None, "yes": True, "no": False}[args.store_images]
@@ -106,7 +106,7 @@ def cmd_map_add(args: argparse.Namespace) -> int:
 
 
 def cmd_map_remove(args: argparse.Namespace) -> int:
-    from vlm_vpr_ros.map_edit import read_ids_file, remove_references
+    from vlm_vpr_ros.maps.edit import read_ids_file, remove_references
 
     ids = read_ids_file(args.ids)
     res = remove_references(args.map, ids, source={"ids_file": str(args.ids)})
@@ -117,7 +117,7 @@ def cmd_map_remove(args: argparse.Namespace) -> int:
 def map_info(path: str | Path) -> dict:
     """Summary of a map from its manifest and file sizes (no index is read)."""
     from vlm_vpr_ros.maps.indexes import ram_bytes
-    from vlm_vpr_ros.map_validate import read_manifest
+    from vlm_vpr_ros.maps.format import read_manifest
 
     path = Path(path)
     man = read_manifest(path)
@@ -185,22 +185,21 @@ def cmd_info(args: argparse.Namespace) -> int:
 def cmd_verify(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from vlm_vpr_ros.map_validate import read_manifest
-    from vlm_vpr_ros.maps.store import verify_map
+    from vlm_vpr_ros.maps.format import read_manifest, verify_files
 
     path = Path(args.map)
     man = read_manifest(path)
     total = sum(int(m.get("bytes", 0)) for m in man["files"].values())
     with tqdm(total=len(man["files"]), desc="verify", unit="file", disable=None) as bar:
-        checked = verify_map(path, man, progress=lambda rel: bar.update(1))
+        checked = verify_files(path, man, progress=lambda rel: bar.update(1))
     print(f"map {path}: OK ({len(checked)} files, {_mb(total)}, sha256 match the manifest)")
     return 0
 
 
 def cmd_upgrade(args: argparse.Namespace) -> int:
     from vlm_vpr_ros.errors import MapError
-    from vlm_vpr_ros.map_io import ReferenceMap
-    from vlm_vpr_ros.maps.build import convert_map
+    from vlm_vpr_ros.maps.reference_map import ReferenceMap
+    from vlm_vpr_ros.maps.build_descriptors import convert_map
 
     out = Path(args.out)
     if out.exists():

@@ -13,7 +13,7 @@ from typing import Any
 from vlm_vpr_ros.cli.common import add_prior_args, write_csv_atomic
 from vlm_vpr_ros.config import parse_kv
 from vlm_vpr_ros.errors import ConfigError, ImageDecodeError
-from vlm_vpr_ros.evaluation import errors_km, read_ground_truth, summarize
+from vlm_vpr_ros.evaluation.metrics import errors_km, read_ground_truth, summarize
 from vlm_vpr_ros.geodesy import THRESHOLDS_KM
 from vlm_vpr_ros.priors import PriorQuery, create_prior_provider
 from vlm_vpr_ros.priors.parsing import PARSER_MODES, parse_answer

@@ -20,7 +20,7 @@ from vlm_vpr_ros.config import from_mapping
 from vlm_vpr_ros.descriptors import DescriptorPreset, register_descriptor
 from vlm_vpr_ros.descriptors.base import GlobalDescriptor, l2_normalize
 from vlm_vpr_ros.errors import DescriptorError
-from vlm_vpr_ros.imageio import check_rgb
+from vlm_vpr_ros.files.images import check_rgb
 
 log = logging.getLogger(__name__)
 

@@ -1,7 +1,7 @@
 """``build-map --engine ray``: the local build's steps with describing, partitioning and index
 building on Ray.
 
-The map build itself is :func:`vlm_vpr_ros.map_build.build_map` (same up-to-date check,
+The map build itself is :func:`vlm_vpr_ros.maps.build_images.build_map` (same up-to-date check,
 fingerprint, skipped list, manifest and atomic save); this module only supplies its
 ``engine``: images are described into descriptor shards in the build's work folder
 (``MAP/.build/shards``, resumable), read back from the shards, then the partition and the
@@ -20,7 +20,7 @@ from vlm_vpr_ros.descriptors import GlobalDescriptor
 from vlm_vpr_ros.distributed.describe import DescribeOptions, describe_to_shards
 from vlm_vpr_ros.distributed.shards import read_shards
 from vlm_vpr_ros.distributed.sources import ImageSource
-from vlm_vpr_ros.map_io import ReferenceMap
+from vlm_vpr_ros.maps.reference_map import ReferenceMap
 
 log = logging.getLogger(__name__)
 
@@ -60,7 +60,7 @@ def build_map_ray(images_dir: str | Path, coords_csv: str | Path, out_dir: str |
                   options: DescribeOptions | None = None) -> ReferenceMap:
     """``build_map`` with the Ray engine (starts a local Ray without ``ray_address``)."""
     from vlm_vpr_ros.distributed.ray_engine import RaySession
-    from vlm_vpr_ros.map_build import build_map
+    from vlm_vpr_ros.maps.build_images import build_map
 
     opts = options or DescribeOptions(engine="ray")
     opts.engine = "ray"

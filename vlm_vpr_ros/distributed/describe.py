@@ -5,7 +5,7 @@ The job is the same for both engines (only *where* images are described differs)
 1. the images folder/URI and the CSV's ids are checked; the shard folder is opened (resumed
    when it holds the same job, see :mod:`~vlm_vpr_ros.distributed.shards`);
 2. a stateful descriptor (``vlad_rootsift``) is fitted ONCE on the same sample as the local
-   ``build-map`` (:func:`vlm_vpr_ros.map_build.fit_sample_indices`) and its state is saved, then
+   ``build-map`` (:func:`vlm_vpr_ros.maps.build_images.fit_sample_indices`) and its state is saved, then
    sent to every worker;
 3. the images of unfinished shards are described in batches; a shard is written as soon as all
    its rows are back, so a killed run loses at most the shards in flight;
@@ -21,22 +21,21 @@ import logging
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator, Mapping, Protocol, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
 from vlm_vpr_ros.descriptors import GlobalDescriptor, create_descriptor
 from vlm_vpr_ros.distributed.shards import (DEFAULT_SHARD_SIZE, ShardStore, job_fingerprint,
                                             plan_shards)
+from vlm_vpr_ros.distributed.engines import Engine, LocalEngine
 from vlm_vpr_ros.distributed.sources import ImageSource
-from vlm_vpr_ros.errors import ConfigError, DescriptorError, ImageDecodeError
+from vlm_vpr_ros.errors import ConfigError, DescriptorError
 
 log = logging.getLogger(__name__)
 
 #: seconds between progress log lines when there is no terminal for the bar
 LOG_EVERY_S = 30.0
-#: one described batch: row indices, ok flags, (k, dim) descriptors, reasons ("" when ok)
-BatchResult = tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]
 
 
 @dataclass
@@ -110,93 +109,6 @@ class DescribeResult:
                 f"{self.images_per_s:.2f} img/s with {self.workers} {self.engine} worker(s)")
 
 
-class Engine(Protocol):
-    """Where the images are described (in this process, or on a Ray cluster)."""
-
-    workers: int
-
-    def fit(self, name: str, config: Mapping[str, Any], sample_ids: list[str]
-            ) -> dict[str, np.ndarray]: ...
-
-    def map(self, items: list[tuple[int, str]], name: str, config: Mapping[str, Any],
-            state: Mapping[str, np.ndarray], identity: Mapping[str, Any]
-            ) -> Iterator[BatchResult]: ...
-
-    def close(self) -> None: ...
-
-
-# -- the work itself (runs in this process or inside a Ray worker) -------------------------------
-def fit_on_sample(desc: GlobalDescriptor, source: ImageSource, sample_ids: Sequence[str],
-                  progress: bool = False) -> dict[str, np.ndarray]:
-    """Fit ``desc`` on the images of ``sample_ids`` (unreadable ones skipped, as the local
-    build does) and return its state arrays."""
-
-    def images() -> Iterator[np.ndarray]:
-        for ref in sample_ids:
-            try:
-                yield source.load(ref)
-            except ImageDecodeError as exc:
-                log.warning("skipping reference: %s", exc)
-
-    desc.fit(images(), progress=progress)
-    return desc.state_arrays()
-
-
-def describe_items(desc: GlobalDescriptor, source: ImageSource,
-                   items: Sequence[tuple[int, str]]) -> BatchResult:
-    """Describe one batch. Unreadable images and images on which the descriptor raises are
-    returned as not ok with the reason; the rest of the batch is kept."""
-    idx = np.array([i for i, _ in items], dtype=np.int64)
-    ok = np.zeros(len(items), bool)
-    feats = np.zeros((len(items), desc.dim), np.float32)
-    reasons = [""] * len(items)
-    images, where = [], []
-    for k, (_, ref) in enumerate(items):
-        try:
-            images.append(source.load(ref))
-            where.append(k)
-        except ImageDecodeError as exc:
-            log.warning("skipping reference: %s", exc)
-            reasons[k] = str(exc)
-    if images:
-        try:
-            feats[where] = desc.describe(images)
-            ok[where] = True
-        # A descriptor may fail on one odd image with any exception type (a library bug, a
-        # shape it does not expect): describe one by one so only that image is lost.
-        except Exception as exc:  # noqa: BLE001
-            log.warning("batch failed (%s: %s); describing its images one by one",
-                        type(exc).__name__, exc)
-            for k, im in zip(where, images):
-                try:
-                    feats[k] = desc.describe([im])[0]
-                    ok[k] = True
-                except Exception as one:  # noqa: BLE001
-                    reasons[k] = f"descriptor failed on {source.uri(items[k][1])}: " \
-                                 f"{type(one).__name__}: {one}"
-                    log.warning("skipping reference: %s", reasons[k])
-    return idx, ok, feats, reasons
-
-
-class LocalEngine:
-    """Describes in this process with the driver's descriptor (no Ray needed)."""
-
-    workers = 1
-
-    def __init__(self, desc: GlobalDescriptor, source: ImageSource, batch_size: int) -> None:
-        self.desc, self.source, self.batch_size = desc, source, batch_size
-
-    def fit(self, name, config, sample_ids):
-        return fit_on_sample(self.desc, self.source, sample_ids, progress=False)
-
-    def map(self, items, name, config, state, identity):
-        for s in range(0, len(items), self.batch_size):
-            yield describe_items(self.desc, self.source, items[s:s + self.batch_size])
-
-    def close(self) -> None:
-        pass
-
-
 # -- the job --------------------------------------------------------------------------------------
 def describe_to_shards(images: str | Path, ids: Sequence[str], out: str | Path,
                        descriptor: str | GlobalDescriptor = "vlad_rootsift",
@@ -209,7 +121,7 @@ def describe_to_shards(images: str | Path, ids: Sequence[str], out: str | Path,
     it). ``engine``: an open engine (``build-map --engine ray`` passes its Ray session);
     by default one is made from ``options``.
     """
-    from vlm_vpr_ros.map_build import fit_sample_indices
+    from vlm_vpr_ros.maps.build_images import fit_sample_indices
 
     opts = options or DescribeOptions()
     opts.validate()

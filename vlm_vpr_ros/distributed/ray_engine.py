@@ -151,7 +151,7 @@ class RaySession:
 
     def partition(self, method: str, lat, lon, clusters: int, seed: int):
         """``make_partition`` as one Ray task."""
-        from vlm_vpr_ros.partition import make_partition
+        from vlm_vpr_ros.maps.partition import make_partition
 
         task = self.ray.remote(num_cpus=1, max_retries=2)(make_partition)
         return self.ray.get(task.remote(method, np.asarray(lat), np.asarray(lon), clusters,
@@ -169,7 +169,7 @@ class RaySession:
 def _index_bytes(kind: str, dim: int, vectors: np.ndarray) -> np.ndarray:
     import faiss
 
-    from vlm_vpr_ros.map_build import new_index
+    from vlm_vpr_ros.maps.assemble import new_index
 
     index = new_index(kind, dim)
     index.add(np.ascontiguousarray(vectors, dtype=np.float32))
@@ -178,7 +178,7 @@ def _index_bytes(kind: str, dim: int, vectors: np.ndarray) -> np.ndarray:
 
 def _fit_task(name: str, config: Mapping[str, Any], source, sample_ids: list[str]):
     from vlm_vpr_ros.descriptors import create_descriptor
-    from vlm_vpr_ros.distributed.describe import fit_on_sample
+    from vlm_vpr_ros.distributed.engines import fit_on_sample
 
     return fit_on_sample(create_descriptor(name, config), source, sample_ids)
 
@@ -189,7 +189,7 @@ class _Describer:
     def __init__(self, name: str, config: Mapping[str, Any], state: Mapping[str, np.ndarray],
                  identity: Mapping[str, Any], source) -> None:
         from vlm_vpr_ros.descriptors import create_descriptor
-        from vlm_vpr_ros.map_io import check_descriptor_identity
+        from vlm_vpr_ros.maps.format import check_descriptor_identity
 
         self.desc = create_descriptor(name, config)
         if state:
@@ -203,7 +203,7 @@ class _Describer:
         self.source = source
 
     def __call__(self, batch: dict[str, np.ndarray]) -> dict[str, Any]:
-        from vlm_vpr_ros.distributed.describe import describe_items
+        from vlm_vpr_ros.distributed.engines import describe_items
 
         items = list(zip(batch["i"].tolist(), [str(x) for x in batch["id"]]))
         idx, ok, feats, reasons = describe_items(self.desc, self.source, items)
@@ -235,7 +235,7 @@ class RayDescriber:
         for bit. ``"cluster"`` runs it as one Ray task (for drivers that cannot read the
         images, e.g. Ray Client from a laptop)."""
         from vlm_vpr_ros.descriptors import create_descriptor
-        from vlm_vpr_ros.distributed.describe import fit_on_sample
+        from vlm_vpr_ros.distributed.engines import fit_on_sample
 
         t0 = time.monotonic()
         if self.opts.fit_on == "driver":

@@ -29,8 +29,8 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from vlm_vpr_ros.errors import DataError, DescriptorError, MapError
-from vlm_vpr_ros.map_io import (atomic_save_npy, atomic_save_npz, atomic_write_bytes,
-                                atomic_write_json)
+from vlm_vpr_ros.files.atomic import (atomic_save_npy, atomic_save_npz, atomic_write_bytes,
+                                      atomic_write_json)
 
 log = logging.getLogger(__name__)
 

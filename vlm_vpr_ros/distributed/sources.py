@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from vlm_vpr_ros.errors import ConfigError, ImageDecodeError
-from vlm_vpr_ros.imageio import decode_image_bytes
+from vlm_vpr_ros.files.images import decode_image_bytes
 
 _SCHEME = re.compile(r"^[A-Za-z][A-Za-z0-9+.-]*://")
 

@@ -17,7 +17,7 @@ import numpy as np
 
 from vlm_vpr_ros.errors import ConfigError
 from vlm_vpr_ros.geodesy import latlon_to_unit, unit_to_latlon
-from vlm_vpr_ros.partition import Partition
+from vlm_vpr_ros.maps.partition import Partition
 
 log = logging.getLogger(__name__)
 

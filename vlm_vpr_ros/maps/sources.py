@@ -232,7 +232,7 @@ def descriptor_identity(name: str, source: DescriptorSource,
     ``describe.json`` and the registry."""
     from vlm_vpr_ros.config import choose
     from vlm_vpr_ros.descriptors import available_descriptors, create_descriptor
-    from vlm_vpr_ros.map_io import check_descriptor_identity
+    from vlm_vpr_ros.maps.format import check_descriptor_identity
     from vlm_vpr_ros.errors import MapError
 
     preset = choose(name, available_descriptors(), "descriptor")
@@ -281,7 +281,7 @@ def _deep_identity(name: str, config: dict) -> dict:
 def read_aligned(source: DescriptorSource, ids: list[str]) -> tuple[np.ndarray, np.ndarray]:
     """In-memory ``(feats (n, dim) float32, ok (n,) bool)`` aligned with ``ids`` (the CSV's
     ``file`` column): by id when the shards carry ids, else by order. Rows without a
-    descriptor are zero and not ok. For small sources; maps/build.py streams large ones."""
+    descriptor are zero and not ok. For small sources; maps/build_descriptors.py streams large ones."""
     feats = np.zeros((len(ids), source.dim), np.float32)
     ok = np.zeros(len(ids), bool)
     if not source.has_ids:

@@ -16,7 +16,7 @@ Opening a map reads the manifest and ``stat``s every file (sizes must match); no
 A submap is opened on first use (sizes checked again before mapping). A file truncated while the
 map is open would make the next page access raise SIGBUS (a crash Python cannot catch), so every
 search first compares the sizes of the submap's files with the manifest (a few ``stat`` calls)
-and raises :class:`MapError` instead. The full sha256 pass is :func:`verify_map`
+and raises :class:`MapError` instead. The full sha256 pass is :func:`~vlm_vpr_ros.maps.format.verify_files`
 (``vlm-vpr map verify``, node parameter ``verify_map``).
 """
 
@@ -31,8 +31,14 @@ from typing import Any, Iterator
 
 import numpy as np
 
+from vlm_vpr_ros import __version__
 from vlm_vpr_ros.errors import MapError
+from vlm_vpr_ros.files.atomic import (atomic_save_npy, atomic_save_npz, atomic_write_index,
+                                      atomic_write_json)
 from vlm_vpr_ros.maps import indexes
+from vlm_vpr_ros.maps.format import (MANIFEST, MAP_FORMAT, METRIC, check_ref_id, checked_file,
+                                     file_table, load_state, verify_files)
+from vlm_vpr_ros.maps.submap import submap_radius_km
 
 log = logging.getLogger(__name__)
 
@@ -40,39 +46,9 @@ VERSION = 2
 
 
 # -- writing ----------------------------------------------------------------------------------
-def _tmp(path: Path) -> Path:
-    return path.with_name(f".{path.name}.tmp{os.getpid()}")
-
-
-def _fsync_replace(tmp: Path, path: Path) -> None:
-    with open(tmp, "rb+") as fh:
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
-
-
-def save_npy(path: Path, arr: np.ndarray) -> None:
-    """``np.save`` to a temporary name, fsync, rename (no in-memory copy of the file)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = _tmp(path)
-    with open(tmp, "wb") as fh:
-        np.save(fh, np.ascontiguousarray(arr), allow_pickle=False)
-    _fsync_replace(tmp, path)
-
-
-def save_index(path: Path, index: Any) -> None:
-    import faiss
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = _tmp(path)
-    faiss.write_index(index, str(tmp))
-    _fsync_replace(tmp, path)
-
-
 def _check_ids(root: Path, rel: str, raw: np.ndarray) -> None:
     """Ids are image paths inside the images folder (issue 10's rule, as for v1 maps): a cheap
     vectorized pre-filter, then the exact check on the few suspects."""
-    from vlm_vpr_ros.map_validate import _check_ref_id
-
     if raw.size == 0:
         return
     bad = (np.char.str_len(raw) == 0) | (np.char.find(raw, b"..") >= 0)
@@ -80,7 +56,7 @@ def _check_ids(root: Path, rel: str, raw: np.ndarray) -> None:
         bad |= np.char.startswith(raw, lead)
     bad |= np.char.find(raw, b":") == 1
     for k in np.flatnonzero(bad)[:1000]:
-        _check_ref_id(root, rel, raw[k].decode("utf-8", "replace"))
+        check_ref_id(root, rel, raw[k].decode("utf-8", "replace"))
 
 
 def encode_ids(ids: list[str]) -> np.ndarray:
@@ -97,28 +73,17 @@ def write_submap(root: Path, sid: str, kind: str, index: Any, coords: np.ndarray
     """Write one submap's files under ``root/submaps``; returns {role: relative path}."""
     rel = {"index": f"submaps/{sid}.faiss", "coords": f"submaps/{sid}.coords.npy",
            "ids": f"submaps/{sid}.ids.npy"}
-    save_index(root / rel["index"], index)
-    save_npy(root / rel["coords"], np.asarray(coords, dtype=np.float64).reshape(-1, 2))
-    save_npy(root / rel["ids"], ids if isinstance(ids, np.ndarray) else encode_ids(ids))
+    atomic_write_index(root / rel["index"], index)
+    atomic_save_npy(root / rel["coords"], np.asarray(coords, dtype=np.float64).reshape(-1, 2))
+    atomic_save_npy(root / rel["ids"], ids if isinstance(ids, np.ndarray) else encode_ids(ids))
     if kind == "pq":
         rel["vectors"] = f"submaps/{sid}.f16.npy"
-        save_npy(root / rel["vectors"], np.asarray(rerank16, dtype=np.float16))
+        atomic_save_npy(root / rel["vectors"], np.asarray(rerank16, dtype=np.float16))
     return rel
-
-
-def file_table(root: Path, rels: list[str]) -> dict[str, dict]:
-    from vlm_vpr_ros.map_io import sha256_file
-
-    return {r: {"bytes": (root / r).stat().st_size, "sha256": sha256_file(root / r)}
-            for r in rels}
 
 
 def save_map(ref_map: Any, path: Path) -> dict:
     """Write an in-memory :class:`ReferenceMap` as a v2 folder; returns the manifest."""
-    from vlm_vpr_ros import __version__
-    from vlm_vpr_ros.map_io import MANIFEST, MAP_FORMAT, METRIC, atomic_save_npz, \
-        atomic_write_json, submap_radius_km
-
     path.mkdir(parents=True, exist_ok=True)
     rels: list[str] = []
     if ref_map.descriptor_state:
@@ -389,35 +354,19 @@ def validate_entries(path: Path, manifest: dict) -> None:
         if not isinstance(roles, dict) or not need <= set(roles):
             raise MapError(f"{path}: submap {sid} lacks files {sorted(need - set(roles or {}))}")
         for rel in roles.values():
-            _check_listed(path, files, rel)
+            checked_file(path, manifest, rel, False)
     if manifest.get("descriptor_state"):
-        _check_listed(path, files, manifest["descriptor_state"])
+        checked_file(path, manifest, manifest["descriptor_state"], False)
 
 
-def _check_listed(path: Path, files: dict, rel: str) -> None:
-    meta = files.get(rel)
-    if not isinstance(meta, dict) or not isinstance(meta.get("bytes"), int):
-        raise MapError(f"{path}: {rel} is not listed in the manifest")
-    p = path / rel
-    if ".." in Path(rel).parts or Path(rel).is_absolute():
-        raise MapError(f"{path}: file {rel!r} is outside the map folder")
-    try:
-        size = p.stat().st_size
-    except OSError:
-        raise MapError(f"{path}: missing file {rel}") from None
-    if size != meta["bytes"]:
-        raise MapError(f"{path}: {rel} has {size} bytes, manifest says {meta['bytes']} "
-                       "(truncated or modified)")
-
-
-def load_map(path: Path, manifest: dict, verify: bool) -> Any:
-    """A :class:`ReferenceMap` over a v2 folder (lazy submaps)."""
-    from vlm_vpr_ros.map_io import ReferenceMap
-    from vlm_vpr_ros.map_validate import load_state
-
+def open_submaps(path: Path, manifest: dict, verify: bool
+                 ) -> tuple[list["LazySubmap"], dict[str, np.ndarray]]:
+    """The lazy submaps and the descriptor state of a v2 folder (for ``ReferenceMap.load``):
+    the manifest's structure and every file's size are checked; ``verify`` adds the sha256
+    pass."""
     validate_entries(path, manifest)
     if verify:
-        verify_map(path, manifest)
+        verify_files(path, manifest)
     state = load_state(path, manifest, False)
     dim = int(manifest["descriptor"]["dim"])
     subs = [LazySubmap(path, e, dim, manifest["files"]) for e in manifest["submaps"]]
@@ -425,29 +374,4 @@ def load_map(path: Path, manifest: dict, verify: bool) -> Any:
     if total != manifest["n_references"]:
         raise MapError(f"{path}: submaps hold {total} references, manifest says "
                        f"{manifest['n_references']}")
-    m = ReferenceMap(manifest, subs, state, path)
-    factor = manifest.get("index_params", {}).get("rerank_factor",
-                                                  indexes.DEFAULT_RERANK_FACTOR)
-    m.rerank_factor = int(factor)
-    return m
-
-
-def verify_map(path: Path, manifest: dict, progress: Any = None) -> list[str]:
-    """sha256 of every listed file against the manifest; raises MapError naming the first bad
-    one. Returns the files checked."""
-    from vlm_vpr_ros.map_io import sha256_file
-
-    checked = []
-    for rel, meta in manifest["files"].items():
-        p = path / rel
-        if not p.is_file():
-            raise MapError(f"{path}: missing file {rel}")
-        if p.stat().st_size != meta.get("bytes"):
-            raise MapError(f"{path}: {rel} has {p.stat().st_size} bytes, manifest says "
-                           f"{meta.get('bytes')} (truncated or modified)")
-        if sha256_file(p) != meta.get("sha256"):
-            raise MapError(f"{path}: {rel} checksum mismatch (corrupt or modified)")
-        checked.append(rel)
-        if progress is not None:
-            progress(rel)
-    return checked
+    return subs, state

@@ -21,7 +21,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from vlm_vpr_ros.errors import PriorError
+from vlm_vpr_ros.errors import OutputError, PriorError
+from vlm_vpr_ros.files.atomic import atomic_write_json
 from vlm_vpr_ros.redact import redact
 
 log = logging.getLogger(__name__)
@@ -76,17 +77,10 @@ class AnswerCache:
         path = self._path(key)
         entry = {"format": CACHE_FORMAT, "raw_text": redact(raw_text), "created": time.time(),
                  **{k: redact(v) if isinstance(v, str) else v for k, v in meta.items()}}
-        tmp = path.with_name(f".{path.name}.{os.getpid()}.{time.monotonic_ns()}.tmp")
         try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            tmp.write_text(json.dumps(entry, ensure_ascii=False, indent=1), encoding="utf-8")
-            os.replace(tmp, path)
-        except OSError as exc:
+            atomic_write_json(path, entry, indent=1, ensure_ascii=False)
+        except OutputError as exc:
             log.warning("could not write cache entry %s: %s", path, exc)
-            try:
-                tmp.unlink()
-            except OSError:
-                pass
 
     def __len__(self) -> int:
         return sum(1 for _ in self.directory.glob("??/*.json"))

@@ -49,7 +49,7 @@ class FixedPrior(PriorProvider):
 def read_prior_csv(path: str | os.PathLike[str]) -> dict[str, tuple[float, float]]:
     """Read a ``file, lat, lon`` CSV into {file: (lat, lon)}; blank/invalid rows are skipped
     (counted in a warning); a file repeated with other coordinates is a DataError."""
-    from vlm_vpr_ros.csvio import read_rows, unique_rows
+    from vlm_vpr_ros.files.csvio import read_rows, unique_rows
 
     items = []
     bad = 0

@@ -22,7 +22,7 @@ from vlm_vpr_ros.descriptors.base import GlobalDescriptor, l2_normalize
 from vlm_vpr_ros.descriptors.deep import weights as W
 from vlm_vpr_ros.descriptors.deep.specs import IMAGENET_MEAN, IMAGENET_STD, ModelSpec
 from vlm_vpr_ros.errors import ConfigError, DescriptorError
-from vlm_vpr_ros.imageio import check_rgb
+from vlm_vpr_ros.files.images import check_rgb
 
 log = logging.getLogger(__name__)
 

@@ -10,7 +10,6 @@ fallback to random weights.
 
 from __future__ import annotations
 
-import hashlib
 import importlib
 import logging
 import math
@@ -27,6 +26,7 @@ from torch import nn
 
 from vlm_vpr_ros.descriptors.deep.specs import ModelSpec
 from vlm_vpr_ros.errors import DescriptorError
+from vlm_vpr_ros.files.atomic import atomic_path, commit_temp, file_sha256
 
 log = logging.getLogger(__name__)
 
@@ -145,24 +145,11 @@ def load_weights(model: nn.Module, path: str | os.PathLike[str], name: str = "")
     log.info("loaded %s from %s (%d tensors)", what, path, len(state))
 
 
-def file_sha256(path: str | os.PathLike[str]) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 def save_state_dict(state: Mapping[str, torch.Tensor], path: str | os.PathLike[str]) -> Path:
     """Write a plain state_dict atomically (temporary file + ``os.replace``)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    try:
+    with atomic_path(path) as tmp:
         torch.save(dict(state), tmp)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
     return path
 
 
@@ -220,7 +207,7 @@ def fetch(spec: ModelSpec, dest: str | os.PathLike[str] | None = None, url: str 
                 raise DescriptorError(f"{exc}. If the server sent a web page instead of the "
                                       f"file, download {spec.human_url} in a browser and copy "
                                       f"it to {target}") from exc
-            os.replace(tmp, target)
+            commit_temp(tmp, target)
             log.info("stored %s (%s)", target, file_sha256(target)[:16])
             return target
     finally:

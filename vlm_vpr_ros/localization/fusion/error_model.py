@@ -33,7 +33,7 @@ from vlm_vpr_ros.geodesy import EARTH_RADIUS_KM, MAX_DISTANCE_KM
 
 ERROR_MODEL_FORMAT = "vlm_vpr_ros.prior_error_model"
 ERROR_MODEL_VERSION = 1
-DEFAULT_ERROR_MODEL = Path(__file__).resolve().parents[1] / "data" / "vlm_error_model.json"
+DEFAULT_ERROR_MODEL = Path(__file__).resolve().parents[2] / "data" / "vlm_error_model.json"
 _R2 = EARTH_RADIUS_KM ** 2
 _LOG_UNIFORM = -math.log(4.0 * math.pi * _R2)
 

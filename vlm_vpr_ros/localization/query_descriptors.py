@@ -14,9 +14,9 @@ from typing import Any, Iterator, Sequence
 
 import numpy as np
 
-from vlm_vpr_ros.batch import result_row, started_ahead
+from vlm_vpr_ros.localization.batch import result_row, started_ahead
 from vlm_vpr_ros.errors import DataError, ImageDecodeError, VlmVprError
-from vlm_vpr_ros.localizer import Localizer
+from vlm_vpr_ros.localization.localizer import Localizer
 from vlm_vpr_ros.maps.sources import open_npy
 from vlm_vpr_ros.priors.base import PriorProvider, PriorQuery, wait_prior
 
@@ -43,7 +43,7 @@ def localize_descriptors(localizer: Localizer, provider: PriorProvider, files: S
         f = item[1]
         query = PriorQuery(key=f)
         if images_dir is not None:
-            from vlm_vpr_ros.imageio import load_image
+            from vlm_vpr_ros.files.images import load_image
 
             try:
                 path = Path(images_dir) / f

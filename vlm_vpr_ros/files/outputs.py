@@ -23,7 +23,6 @@ e.g. a v2 map build)::
 from __future__ import annotations
 
 import csv
-import errno
 import json
 import logging
 import os
@@ -32,23 +31,13 @@ from pathlib import Path
 from typing import Callable, Iterable
 
 from vlm_vpr_ros.errors import OutputError
+from vlm_vpr_ros.files.atomic import describe_os_error
 
 log = logging.getLogger(__name__)
 
 #: marker file written into every bag / evaluation folder this tool creates
 MARKER = ".vlm_vpr_output.json"
 KINDS = ("map", "bag", "evaluation")
-
-
-def describe_os_error(exc: OSError, path: str | os.PathLike[str] | None = None) -> str:
-    """One line for a write failure, with a hint for the two common causes."""
-    where = path or exc.filename or "output"
-    why = exc.strerror or str(exc)
-    if exc.errno in (errno.ENOSPC, errno.EDQUOT):
-        return f"cannot write {where}: {why} (free some space and run the same command again)"
-    if exc.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
-        return f"cannot write {where}: {why} (choose a folder you can write to)"
-    return f"cannot write {where}: {why}"
 
 
 def _csv_header(path: Path) -> list[str]:

@@ -49,7 +49,7 @@ def format_table(rows: dict[str, dict], title: str = "") -> str:
 def read_ground_truth(path) -> dict[str, tuple[float, float]]:
     """Ground truth CSV as {file: (lat, lon)}; columns ``file, lat, lon`` or IM2GPS-style
     ``IMG_ID, LAT, LON``."""
-    from vlm_vpr_ros.csvio import parse_latlon, read_rows, unique_rows
+    from vlm_vpr_ros.files.csvio import parse_latlon, read_rows, unique_rows
     from vlm_vpr_ros.errors import DataError
 
     cols, rows = read_rows(path, "ground truth CSV")
@@ -83,7 +83,7 @@ def evaluate_results_csv(results_csv, ground_truth_csv) -> tuple[dict, dict]:
     """Summary (JSON shape of ``vlm-vpr evaluate``) of a results CSV, plus extra statistics."""
     import os
 
-    from vlm_vpr_ros.csvio import read_table
+    from vlm_vpr_ros.files.csvio import read_table
 
     gt = read_ground_truth(ground_truth_csv)
     gt_base = {os.path.basename(k): v for k, v in gt.items()}

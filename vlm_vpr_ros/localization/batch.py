@@ -15,8 +15,8 @@ from typing import Any, Callable, Iterable, Iterator, Sequence, TypeVar
 import numpy as np
 
 from vlm_vpr_ros.errors import ImageDecodeError, VlmVprError
-from vlm_vpr_ros.imageio import load_image
-from vlm_vpr_ros.pipeline import LocalizationPipeline
+from vlm_vpr_ros.files.images import load_image
+from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
 from vlm_vpr_ros.priors.base import PriorProvider, PriorQuery, PriorResult, wait_prior
 from vlm_vpr_ros.types import Hypothesis
 
@@ -132,7 +132,7 @@ class ResultsStream:
     def __init__(self, out: Path, done: list[dict]) -> None:
         import csv
 
-        from vlm_vpr_ros.csvio import write_csv_atomic
+        from vlm_vpr_ros.files.csvio import write_csv_atomic
 
         self.out, self.partial = out, out.with_name(out.name + ".partial")
         write_csv_atomic(self.partial, RESULT_FIELDS, done)
@@ -151,7 +151,7 @@ class ResultsStream:
 
     def finish(self, order: Sequence[str]) -> None:
         """Write ``OUT`` in query order atomically, then drop the partial file."""
-        from vlm_vpr_ros.csvio import write_csv_atomic
+        from vlm_vpr_ros.files.csvio import write_csv_atomic
 
         self.close()
         rank = {f: i for i, f in enumerate(order)}

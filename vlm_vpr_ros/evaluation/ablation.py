@@ -14,7 +14,7 @@ Rows (each evaluated at every top-p of the sweep):
 The ``fusion`` column says which fusion mode each row runs (the paper's rows: ``paper``).
 
 The country and cluster partitions are made in memory from the same map
-(:meth:`ReferenceMap.with_partition`), so one map and one set of descriptors serve every row.
+(:func:`vlm_vpr_ros.maps.assemble.repartition`), so one map and one set of descriptors serve every row.
 The prior itself (``prior only``) is reported as a reference row.
 """
 
@@ -27,10 +27,11 @@ from typing import Callable, Sequence
 import numpy as np
 
 from vlm_vpr_ros.errors import DataError
-from vlm_vpr_ros.evaluation import errors_km, summarize
+from vlm_vpr_ros.evaluation.metrics import errors_km, summarize
 from vlm_vpr_ros.geodesy import THRESHOLDS_KM
-from vlm_vpr_ros.localizer import Localizer, LocalizerConfig
-from vlm_vpr_ros.map_io import ReferenceMap
+from vlm_vpr_ros.localization.localizer import Localizer, LocalizerConfig
+from vlm_vpr_ros.maps.reference_map import ReferenceMap
+from vlm_vpr_ros.maps.assemble import repartition
 from vlm_vpr_ros.priors.base import PriorResult
 
 log = logging.getLogger(__name__)
@@ -103,7 +104,7 @@ def run_ablation(ref_map: ReferenceMap, descriptors: np.ndarray, truth: np.ndarr
     maps = {None: ref_map}
     for part in sorted({r.partition for r in rows if r.partition}):
         same = part == ref_map.partition_method and (part == "country" or own_k == clusters)
-        maps[part] = ref_map if same else ref_map.with_partition(part, clusters=clusters)
+        maps[part] = ref_map if same else repartition(ref_map, part, clusters=clusters)
     result = AblationResult(ps, clusters=clusters,
                             n_submaps={str(k): len(m.submaps) for k, m in maps.items() if k})
     gt = [tuple(g) for g in truth]
@@ -130,7 +131,7 @@ def format_ablation(result: AblationResult, table_top_p: int | None = None,
                     sweep_metric: str = "25km") -> str:
     """The paper-style table at one top-p (default: the largest swept), then the top-p sweep
     of one threshold."""
-    from vlm_vpr_ros.evaluation import format_table
+    from vlm_vpr_ros.evaluation.metrics import format_table
 
     ps = result.top_ps
     p = table_top_p if table_top_p in ps else ps[-1]

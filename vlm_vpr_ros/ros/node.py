@@ -1,7 +1,7 @@
 """``vlm_vpr_node`` / ``vlm_vpr_lifecycle_node``: Image in, NavSatFix + diagnostics out.
 
-ROS 2 wiring only. The query logic lives in :mod:`vlm_vpr_ros.runtime` (pure), message
-conversions in :mod:`msg_adapters`, the parameter schema in :mod:`vlm_vpr_ros.node_config`.
+ROS 2 wiring only. The query logic lives in :mod:`vlm_vpr_ros.runtime.worker` (pure), message
+conversions in :mod:`msg_adapters`, the parameter schema in :mod:`vlm_vpr_ros.runtime.params`.
 Both executables share :class:`_Wiring`, in four steps that are the lifecycle transitions:
 
 * parameters (constructor): every parameter declared once with its descriptor (type,
@@ -30,8 +30,8 @@ from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackRet
 from rclpy.node import Node
 
 from vlm_vpr_ros.errors import ConfigError, VlmVprError
-from vlm_vpr_ros.node_config import requested_parameters
-from vlm_vpr_ros.node_wiring import _Wiring, image_qos  # noqa: F401
+from vlm_vpr_ros.runtime.params import requested_parameters
+from vlm_vpr_ros.ros.wiring import _Wiring, image_qos  # noqa: F401
 from vlm_vpr_ros.redact import redact
 
 NODE_NAME = "vlm_vpr_node"
@@ -175,7 +175,7 @@ def _run(cls: type, args: list[str] | None) -> int:
 
 def main(args: list[str] | None = None) -> int:
     """Console script ``vlm_vpr_node`` (``--ros-args -p name:=value`` / ``--params-file``)."""
-    if args is None and "--lifecycle" in sys.argv[1:]:  # python -m vlm_vpr_ros.node --lifecycle
+    if args is None and "--lifecycle" in sys.argv[1:]:  # python -m vlm_vpr_ros.ros.node --lifecycle
         return lifecycle_main([a for a in sys.argv if a != "--lifecycle"])
     return _run(VlmVprNode, args)
 

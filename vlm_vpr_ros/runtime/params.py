@@ -20,7 +20,7 @@ from typing import Any, Mapping
 
 from vlm_vpr_ros.errors import ConfigError
 from vlm_vpr_ros.geodesy import MAX_DISTANCE_KM
-from vlm_vpr_ros.localizer import FUSION_MODES, LocalizerConfig
+from vlm_vpr_ros.localization.localizer import FUSION_MODES, LocalizerConfig
 
 MODES = ("continuous", "on_trigger")
 QOS_CHOICES = ("sensor_data", "best_effort", "reliable")

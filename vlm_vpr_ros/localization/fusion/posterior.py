@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from vlm_vpr_ros.fusion.error_model import ErrorModel
+from vlm_vpr_ros.localization.fusion.error_model import ErrorModel
 from vlm_vpr_ros.geodesy import EARTH_RADIUS_KM, MAX_DISTANCE_KM, haversine_km, latlon_to_unit
 
 

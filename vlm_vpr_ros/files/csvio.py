@@ -10,7 +10,8 @@ import os
 from pathlib import Path
 from typing import Any, Iterable
 
-from vlm_vpr_ros.errors import DataError, OutputError
+from vlm_vpr_ros.errors import DataError
+from vlm_vpr_ros.files.atomic import atomic_path
 
 log = logging.getLogger(__name__)
 
@@ -87,22 +88,14 @@ def unique_rows(items: Iterable[tuple[int, str, Any]], path: str | os.PathLike[s
 
 def write_csv_atomic(path: str | os.PathLike[str], fieldnames: list[str],
                      rows: Iterable[dict]) -> None:
-    """Write a CSV through a temporary file and ``os.replace``."""
-    from vlm_vpr_ros.outputs import describe_os_error
+    """Write a CSV atomically (:func:`~vlm_vpr_ros.files.atomic.atomic_path`)."""
+    with atomic_path(path) as tmp, tmp.open("w", newline="", encoding="utf-8") as fh:
+        w = csv.DictWriter(fh, fieldnames=fieldnames, extrasaction="ignore")
+        w.writeheader()
+        for row in rows:
+            w.writerow(row)
 
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with tmp.open("w", newline="", encoding="utf-8") as fh:
-            w = csv.DictWriter(fh, fieldnames=fieldnames, extrasaction="ignore")
-            w.writeheader()
-            for row in rows:
-                w.writerow(row)
-        os.replace(tmp, path)
-    except OSError as exc:
-        tmp.unlink(missing_ok=True)
-        raise OutputError(describe_os_error(exc, path)) from None
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+
+def read_file_column(path: str | Path) -> list[str]:
+    """The ``file`` column of a queries CSV (other columns are ignored)."""
+    return [row["file"] for row in read_table(path, ("file",), "queries CSV") if row["file"]]

@@ -27,9 +27,9 @@ from typing import Any, Callable
 import numpy as np
 
 from vlm_vpr_ros.errors import ConfigError, ImageDecodeError, VlmVprError
-from vlm_vpr_ros.pipeline import LocalizationPipeline
+from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
 from vlm_vpr_ros.priors.base import PriorProvider, PriorQuery, PriorResult
-from vlm_vpr_ros.runtime_stats import RuntimeStats, Throttle
+from vlm_vpr_ros.runtime.stats import RuntimeStats, Throttle
 from vlm_vpr_ros.types import Hypothesis
 
 log = logging.getLogger(__name__)

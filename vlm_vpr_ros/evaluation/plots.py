@@ -21,6 +21,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from vlm_vpr_ros.geodesy import THRESHOLDS_KM
+from vlm_vpr_ros.files.atomic import atomic_path
 
 log = logging.getLogger(__name__)
 
@@ -53,11 +54,11 @@ def land_points() -> np.ndarray:
 
 def _save(fig, path: str | os.PathLike[str], dpi: int) -> Path:
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.tmp{os.getpid()}.png")
-    fig.savefig(tmp, dpi=dpi, bbox_inches="tight", pad_inches=0.08)
-    _pyplot().close(fig)
-    os.replace(tmp, path)
+    try:
+        with atomic_path(path, suffix=".png") as tmp:
+            fig.savefig(tmp, dpi=dpi, bbox_inches="tight", pad_inches=0.08)
+    finally:
+        _pyplot().close(fig)
     return path
 
 

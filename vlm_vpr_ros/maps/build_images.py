@@ -13,19 +13,17 @@ from typing import Any, Iterator, Mapping
 
 import numpy as np
 
-from vlm_vpr_ros.config import choose
-from vlm_vpr_ros.csvio import parse_latlon, read_rows, read_table, unique_rows
+from vlm_vpr_ros.files.csvio import parse_latlon, read_rows, unique_rows
 from vlm_vpr_ros.descriptors import GlobalDescriptor, create_descriptor
 from vlm_vpr_ros.errors import DataError, ImageDecodeError, MapError
-from vlm_vpr_ros.imageio import check_rgb, load_image
-from vlm_vpr_ros.map_io import (MANIFEST, ReferenceMap, Submap, atomic_save_npy, atomic_save_npz,
-                                atomic_write_json)
-from vlm_vpr_ros.maps.balance import split_large
-from vlm_vpr_ros.maps.indexes import (DEFAULT_RERANK_FACTOR, INDEX_KINDS, PQ_TRAIN_SAMPLE,
-                                      check_kind, choose_kinds, effective_kind, make_index,
-                                      measure_recall, train_pq)
-from vlm_vpr_ros.outputs import StagedOutput, check_not_inside, written_by_us
-from vlm_vpr_ros.partition import make_partition
+from vlm_vpr_ros.maps.format import bad_ref_id
+from vlm_vpr_ros.files.images import check_rgb, load_image
+from vlm_vpr_ros.maps.format import MANIFEST
+from vlm_vpr_ros.maps.assemble import assemble_map
+from vlm_vpr_ros.maps.reference_map import ReferenceMap
+from vlm_vpr_ros.files.atomic import atomic_save_npy, atomic_save_npz, atomic_write_json
+from vlm_vpr_ros.maps.indexes import (DEFAULT_RERANK_FACTOR, check_kind)
+from vlm_vpr_ros.files.outputs import StagedOutput, check_not_inside, written_by_us
 
 log = logging.getLogger(__name__)
 CHUNK = 128
@@ -34,12 +32,9 @@ CHUNK = 128
 def check_reference_id(ref_id: str, where: str) -> str:
     """A reference id is a relative path inside the images folder: no absolute paths, no
     ``..``; anything else is a DataError naming ``where``."""
-    import re
-
     if not ref_id or not ref_id.strip():
         raise DataError(f"{where}: empty file name")
-    if (ref_id.startswith(("/", "\\")) or re.match(r"^[A-Za-z]:", ref_id) or "\0" in ref_id
-            or ".." in re.split(r"[/\\]", ref_id)):
+    if bad_ref_id(ref_id):
         raise DataError(f"{where}: file {ref_id!r} points outside the images folder (use a "
                         "path relative to it, without '..')")
     return ref_id
@@ -100,73 +95,6 @@ def images_fingerprint(images_dir: Path, rows) -> str:
     return h.hexdigest()
 
 
-def assemble_map(desc: np.ndarray, coords: np.ndarray, ids: list[str], identity: dict,
-                 state: Mapping[str, np.ndarray], partition: str, clusters: int = 100,
-                 seed: int = 0, extra: Mapping[str, Any] | None = None,
-                 index: str = "flat", ram_budget_mb: float | None = None,
-                 max_submap_size: int | None = None,
-                 rerank_factor: int = DEFAULT_RERANK_FACTOR, engine: Any = None) -> ReferenceMap:
-    """Partition references and build one index per submap (in memory).
-    ``index``: "flat" (float32, exact), "fp16" (exact on fp16-rounded descriptors), "pq"
-    (PQ fast-scan + exact fp16 re-rank) or "auto" (per submap within ``ram_budget_mb``); see
-    maps/indexes.py. ``max_submap_size`` splits larger submaps (maps/balance.py).
-    ``engine``: run the partition and the flat/fp16 index builds elsewhere (``partition(...)``,
-    ``build_indexes(kind, dim, parts)``; the Ray engine runs them as tasks); pq is built here."""
-    check_kind(index)
-    part = (engine.partition if engine is not None else make_partition)(
-        partition, coords[:, 0], coords[:, 1], clusters, seed)
-    part, groups = split_large(part, coords[:, 0], coords[:, 1], max_submap_size, seed)
-    sels = [np.flatnonzero(part.labels == k) for k in range(len(part.names))]
-    kinds = plan_kinds(index, [len(s) for s in sels], desc.shape[1], ram_budget_mb)
-    remote = None
-    if engine is not None and len(set(kinds)) == 1 and kinds[0] in ("flat", "fp16"):
-        remote = engine.build_indexes(kinds[0], desc.shape[1], [desc[sel] for sel in sels])
-    trained = None
-    if "pq" in kinds:
-        rng = np.random.default_rng(seed)
-        sample = rng.choice(len(desc), min(len(desc), PQ_TRAIN_SAMPLE), replace=False)
-        trained = train_pq(np.asarray(desc[np.sort(sample)], dtype=np.float32))
-    submaps = []
-    for k, name in enumerate(part.names):
-        sel, kind = sels[k], kinds[k]
-        vecs = np.ascontiguousarray(desc[sel], dtype=np.float32)
-        faiss_index = remote[k] if remote is not None else make_index(kind, vecs, trained)
-        rerank = vecs.astype(np.float16) if kind == "pq" else None
-        recall = (measure_recall(faiss_index, kind, rerank, vecs, rerank_factor, seed=seed)
-                  if kind != "flat" else None)
-        submaps.append(Submap(name, tuple(float(c) for c in part.centroids[k]),
-                              coords[sel].astype(np.float64), [ids[i] for i in sel],
-                              faiss_index, kind=kind, rerank=rerank,
-                              group=groups[k] if groups[k] != name else "", recall=recall))
-    manifest = {"descriptor": identity, "index": index,
-                "index_params": {"rerank_factor": int(rerank_factor),
-                                 "ram_budget_mb": ram_budget_mb},
-                "partition": {"method": part.method, "params": part.params},
-                "source": dict(extra or {})}
-    return ReferenceMap(manifest, submaps, dict(state))
-
-
-INDEX_TYPES = INDEX_KINDS
-
-
-def plan_kinds(index: str, counts: list[int], dim: int,
-               ram_budget_mb: float | None) -> list[str]:
-    """The index kind of every submap for a requested ``index`` (see maps/indexes.py)."""
-    if index == "auto":
-        return choose_kinds(counts, dim, ram_budget_mb)
-    return [effective_kind(index, c) for c in counts]
-
-
-def new_index(kind: str, dim: int) -> Any:
-    """An empty exact L2 index: "flat" = IndexFlatL2, "fp16" = fp16 scalar-quantized."""
-    import faiss
-
-    choose(kind, dict.fromkeys(("flat", "fp16")), "index type")
-    if kind == "flat":
-        return faiss.IndexFlatL2(dim)
-    return faiss.IndexScalarQuantizer(dim, faiss.ScalarQuantizer.QT_fp16, faiss.METRIC_L2)
-
-
 def _images(root: Path, rows, idx) -> Iterator[tuple[int, np.ndarray | None]]:
     for i in idx:
         try:
@@ -187,7 +115,7 @@ def build_map(images_dir: str | Path, coords_csv: str | Path, out_dir: str | Pat
     (``vlm_vpr_ros.distributed.build``); by default everything runs in this process.
 
     The map is built in ``.OUT.partial/`` next to ``out_dir`` and swapped in when complete and
-    valid (:mod:`vlm_vpr_ros.outputs`): an old map stays until then, and a failed or
+    valid (:mod:`vlm_vpr_ros.files.outputs`): an old map stays until then, and a failed or
     interrupted build (full disk, Ctrl-C, kill) resumes from its finished chunks."""
     out_dir = Path(out_dir)
     if engine is None:  # an engine may read a URI (s3://, gs://, file://): keep it a string
@@ -286,8 +214,8 @@ def _build_staged(images_dir: Any, rows, desc: GlobalDescriptor, stage: StagedOu
 def write_map_calibration(ref_map: ReferenceMap, desc: np.ndarray, coords: np.ndarray) -> None:
     """The fusion's leave-one-out calibration, stored as the map's one optional
     ``calibration.json`` (docs/fusion.md); rows of ``desc``/``coords`` in any order."""
-    from vlm_vpr_ros.fusion.calibration import calibrate_references, save_calibration
-    from vlm_vpr_ros.fusion.error_model import load_error_models
+    from vlm_vpr_ros.localization.fusion.calibration import calibrate_references, save_calibration
+    from vlm_vpr_ros.localization.fusion.error_model import load_error_models
 
     t0 = time.monotonic()
     doc = calibrate_references(desc, coords, load_error_models().get())
@@ -344,8 +272,3 @@ def _extract(desc: GlobalDescriptor, root: Path, rows, work: Path, progress: boo
     if bar is not None:
         bar.close()
     return feats, ok
-
-
-def read_file_column(path: str | Path) -> list[str]:
-    """The ``file`` column of a queries CSV (other columns are ignored)."""
-    return [row["file"] for row in read_table(path, ("file",), "queries CSV") if row["file"]]

@@ -27,13 +27,13 @@ from msg_adapters.diagnostics import diagnostic_array
 from msg_adapters.image import encoded_bytes, message_to_rgb, stamp_ns
 from msg_adapters.navsat import FixPolicy, navsat_fix
 from vlm_vpr_ros.errors import ConfigError, VlmVprError
-from vlm_vpr_ros.node_config import (NESTED, PARAMETER_SPECS, ROS_STANDARD, NodeConfig,
-                                     ParamSpec, from_params, type_conflicts)
-from vlm_vpr_ros.pipeline import LocalizationPipeline
+from vlm_vpr_ros.runtime.params import (NESTED, NodeConfig, PARAMETER_SPECS, ParamSpec,
+                                        ROS_STANDARD, from_params, type_conflicts)
+from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
 from vlm_vpr_ros.priors import create_prior_provider
-from vlm_vpr_ros.runtime import (Frame, QueryOutcome, QueryRuntime, RuntimeConfig,
-                                 outcome_summary)
-from vlm_vpr_ros.runtime_stats import RuntimeStats, Throttle
+from vlm_vpr_ros.runtime.worker import (Frame, QueryOutcome, QueryRuntime, RuntimeConfig,
+                                        outcome_summary)
+from vlm_vpr_ros.runtime.stats import RuntimeStats, Throttle
 
 _ROS_TYPES = {"bool": ParameterType.PARAMETER_BOOL, "int": ParameterType.PARAMETER_INTEGER,
               "float": ParameterType.PARAMETER_DOUBLE, "str": ParameterType.PARAMETER_STRING}

@@ -13,33 +13,31 @@ a node that opened submaps lazily — keeps a complete map until it reloads; the
 deletes them. An edit that fails before the commit deletes what it wrote and leaves the old
 map as it was. One edit at a time (``MAP/.edit.lock``).
 
-Maps may hold their reference images (teach maps built from a bag): ``MAP/images/<id>``, listed
-with size and sha256 in ``MAP/images/index.g<generation>.json`` (itself in the manifest's
-``files``). Adding to such a map copies the new images in; removing deletes them.
+Maps may hold their reference images (teach maps built from a bag,
+:mod:`vlm_vpr_ros.maps.map_images`): adding to such a map copies the new images in; removing
+deletes them.
 """
 
 from __future__ import annotations
 
 import contextlib
-import copy
-import fcntl
-import json
 import logging
 import math
 import os
-import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Iterator, Mapping, Sequence
+from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
 from vlm_vpr_ros.errors import DataError, ImageDecodeError, MapError
 from vlm_vpr_ros.geodesy import haversine_km, spherical_mean
-from vlm_vpr_ros.map_io import (MANIFEST, ReferenceMap, Submap, atomic_save_npy,
-                                atomic_write_index, atomic_write_json, sha256_file,
-                                submap_radius_km)
+from vlm_vpr_ros.maps import map_images
+from vlm_vpr_ros.maps.map_images import IMAGES_DIR, image_index, safe_rel, write_image_index
+from vlm_vpr_ros.maps.reference_map import ReferenceMap
+from vlm_vpr_ros.maps.submap import Submap, submap_radius_km
+from vlm_vpr_ros.maps.transaction import Transaction, edit_lock, finish_manifest
 
 log = logging.getLogger(__name__)
 
@@ -47,7 +45,6 @@ log = logging.getLogger(__name__)
 FIT_SLACK = 1.5
 #: ... and always within this distance of its centroid (metres)
 FIT_FLOOR_M = 100.0
-IMAGES_DIR = "images"
 CHUNK = 64
 
 
@@ -78,171 +75,6 @@ class EditResult:
         return "; ".join(parts)
 
 
-# -- locking and committing ---------------------------------------------------------------------
-@contextlib.contextmanager
-def edit_lock(map_dir: Path) -> Iterator[None]:
-    """Exclusive lock on a map folder for one edit (fails at once if another edit runs)."""
-    if not (map_dir / MANIFEST).is_file():
-        raise MapError(f"{map_dir} is not a map (no {MANIFEST})")
-    fh = open(map_dir / ".edit.lock", "a+")
-    try:
-        try:
-            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            raise MapError(f"{map_dir} is being edited by another process; try again when it "
-                           "has finished") from None
-        yield
-    finally:
-        fh.close()
-
-
-class _Transaction:
-    """Files written under new names, then the manifest; rollback deletes the new files."""
-
-    def __init__(self, path: Path, manifest: dict) -> None:
-        self.path = path
-        self.old = manifest
-        self.new = copy.deepcopy(manifest)
-        self.written: list[str] = []
-
-    def record(self, rel: str) -> None:
-        self.written.append(rel)
-        p = self.path / rel
-        self.new["files"][rel] = {"bytes": p.stat().st_size, "sha256": sha256_file(p)}
-
-    def write_submap(self, sub: Submap, gen: int) -> dict:
-        """Write a submap under generation-stamped names in the map's own format version;
-        returns its manifest entry."""
-        entry = {"id": sub.id, "count": sub.count,
-                 "centroid": [round(float(c), 7) for c in sub.centroid]}
-        if int(self.old.get("version", 1)) >= 2:  # format v2 (vlm_vpr_ros.maps.store)
-            from vlm_vpr_ros.maps.store import write_submap
-
-            kind = getattr(sub, "kind", "flat")
-            rel = write_submap(self.path, f"{sub.id}.g{gen}", kind, sub.index, sub.coords,
-                               list(sub.ids), getattr(sub, "rerank", None))
-            entry.update({"group": getattr(sub, "group", "") or sub.id, "kind": kind,
-                          "radius_km": round(submap_radius_km(sub), 4)})
-            if getattr(sub, "recall", None):
-                entry["recall"] = sub.recall
-        else:
-            stem = f"submaps/{sub.id}.g{gen}"
-            rel = {"index": f"{stem}.faiss", "coords": f"{stem}.coords.npy",
-                   "ids": f"{stem}.ids.json"}
-            atomic_write_index(self.path / rel["index"], sub.index)
-            atomic_save_npy(self.path / rel["coords"], np.asarray(sub.coords, np.float64))
-            atomic_write_json(self.path / rel["ids"], list(sub.ids))
-        for r in rel.values():
-            self.record(r)
-        entry["files"] = rel
-        return entry
-
-    def commit(self) -> None:
-        """Replace the manifest (the commit point). The files the new manifest no longer lists
-        are kept for one more generation (``retired``): a process that opened the previous
-        generation lazily (format v2) can still open its submaps until it reloads; the files
-        retired by the edit before are deleted now."""
-        listed = self.new["files"]
-        for rel in list(listed):
-            if not (self.path / rel).is_file():
-                raise MapError(f"internal: {rel} listed but not written")
-        gone = sorted(set(self.old["files"]) - set(listed))
-        older = [r for r in self.old.get("retired", []) if r not in listed]
-        self.new["retired"] = gone
-        atomic_write_json(self.path / MANIFEST, self.new)
-        for rel in older:
-            with contextlib.suppress(FileNotFoundError):
-                (self.path / rel).unlink()
-
-    def rollback(self) -> None:
-        for rel in self.written:
-            if rel not in self.old["files"]:
-                with contextlib.suppress(FileNotFoundError):
-                    (self.path / rel).unlink()
-
-
-# -- images stored in the map --------------------------------------------------------------------
-def image_index(map_dir: Path, manifest: Mapping[str, Any]) -> dict[str, dict]:
-    """``{id: {"bytes", "sha256"}}`` of the images a map holds ({} when it holds none)."""
-    entry = manifest.get("images")
-    if not entry:
-        return {}
-    p = map_dir / entry["index"]
-    try:
-        return dict(json.loads(p.read_text(encoding="utf-8")))
-    except (OSError, ValueError, TypeError) as exc:
-        raise MapError(f"{map_dir}: cannot read the image index {entry['index']}: {exc}") from exc
-
-
-def _safe_rel(ref_id: str) -> Path:
-    p = Path(ref_id)
-    if p.is_absolute() or ".." in p.parts or not p.parts:
-        raise DataError(f"reference id {ref_id!r} is not a relative path inside the images "
-                        "folder; it cannot be stored in the map")
-    return p
-
-
-def _store_images(tx: _Transaction, src_root: Path, ids: Sequence[str], index: dict,
-                  gen: int, move: bool = False) -> None:
-    for ref_id in ids:
-        dst = tx.path / IMAGES_DIR / _safe_rel(ref_id)
-        dst.parent.mkdir(parents=True, exist_ok=True)
-        tmp = dst.with_name(f".{dst.name}.tmp{os.getpid()}")
-        if move:
-            os.replace(src_root / ref_id, tmp)
-        else:
-            shutil.copyfile(src_root / ref_id, tmp)
-        os.replace(tmp, dst)
-        tx.written.append(f"{IMAGES_DIR}/{ref_id}")
-        index[ref_id] = {"bytes": dst.stat().st_size, "sha256": sha256_file(dst)}
-    _write_image_index(tx, index, gen)
-
-
-def _write_image_index(tx: _Transaction, index: dict, gen: int) -> None:
-    old = tx.old.get("images")
-    if old:
-        tx.new["files"].pop(old["index"], None)
-    if not index:
-        tx.new.pop("images", None)
-        return
-    rel = f"{IMAGES_DIR}/index.g{gen}.json"
-    atomic_write_json(tx.path / rel, dict(sorted(index.items())))
-    tx.record(rel)
-    tx.new["images"] = {"folder": IMAGES_DIR, "index": rel, "count": len(index)}
-
-
-def attach_images(map_dir: str | os.PathLike[str], images_dir: str | os.PathLike[str],
-                  ids: Sequence[str] | None = None) -> None:
-    """Move the reference images of a freshly built map (``images_dir/<id>``) into it and list
-    them in its manifest (used by ``build-map --bag``)."""
-    path = Path(map_dir)
-    with edit_lock(path):
-        manifest = json.loads((path / MANIFEST).read_text(encoding="utf-8"))
-        ref_ids = ids if ids is not None else ReferenceMap.load(path, verify=False).all_ids()
-        tx = _Transaction(path, manifest)
-        try:
-            _store_images(tx, Path(images_dir), list(ref_ids), image_index(path, manifest),
-                          int(manifest.get("generation", 0)), move=True)
-            tx.commit()
-        except BaseException:
-            tx.rollback()
-            raise
-
-
-def verify_images(map_dir: str | os.PathLike[str]) -> int:
-    """Check every image a map holds against its index (size, sha256); returns the count."""
-    path = Path(map_dir)
-    manifest = json.loads((path / MANIFEST).read_text(encoding="utf-8"))
-    index = image_index(path, manifest)
-    for ref_id, meta in index.items():
-        p = path / IMAGES_DIR / ref_id
-        if not p.is_file():
-            raise MapError(f"{path}: image {ref_id} is listed but missing")
-        if p.stat().st_size != meta["bytes"] or sha256_file(p) != meta["sha256"]:
-            raise MapError(f"{path}: image {ref_id} does not match its checksum")
-    return len(index)
-
-
 # -- where new references go ---------------------------------------------------------------------
 def _next_kmeans_ids(existing: Iterable[str], n: int) -> list[str]:
     nums = [int(s[1:]) for s in existing if s[:1] == "k" and s[1:].isdigit()]
@@ -257,7 +89,7 @@ def assign_submaps(ref_map: ReferenceMap, coords: np.ndarray, seed: int = 0) -> 
     if method == "none":
         return [ref_map.submaps[0].id] * len(coords)
     if method == "country":
-        from vlm_vpr_ros.partition import country_codes
+        from vlm_vpr_ros.maps.partition import country_codes
 
         return country_codes(lat, lon)
     if method != "kmeans":
@@ -272,7 +104,7 @@ def assign_submaps(ref_map: ReferenceMap, coords: np.ndarray, seed: int = 0) -> 
         out.append(ref_map.submaps[k].id if d[k] <= radius[k] else None)
     left = [i for i, s in enumerate(out) if s is None]
     if left:
-        from vlm_vpr_ros.partition import partition_kmeans
+        from vlm_vpr_ros.maps.partition import partition_kmeans
 
         size = max(1, int(np.median([s.count for s in ref_map.submaps])))
         part = partition_kmeans(lat[left], lon[left], math.ceil(len(left) / size), seed)
@@ -287,7 +119,7 @@ def assign_submaps(ref_map: ReferenceMap, coords: np.ndarray, seed: int = 0) -> 
 # -- add ------------------------------------------------------------------------------------------
 def _describe(desc, root: Path, rows: Sequence[tuple[str, float, float]],
               progress: bool) -> tuple[np.ndarray, list[int], list[str]]:
-    from vlm_vpr_ros.imageio import load_image
+    from vlm_vpr_ros.files.images import load_image
 
     feats, good, skipped = [], [], []
     bar = None
@@ -354,7 +186,7 @@ def _rebuilt(ref_map: ReferenceMap, sub_id: str, vectors: np.ndarray, coords: np
         return Submap(sub_id, centroid, coords, list(ids), index, kind=kind, rerank=rerank,
                       group=getattr(like, "group", "") if like is not None else "",
                       recall=recall)
-    from vlm_vpr_ros.map_build import new_index
+    from vlm_vpr_ros.maps.assemble import new_index
 
     index = new_index(kind, vecs.shape[1])
     index.add(vecs)
@@ -384,7 +216,7 @@ def add_references(map_dir: str | os.PathLike[str], images_dir: str | os.PathLik
     own descriptor and state and add them. ``descriptor``: the name the caller expects (a map
     built with another one is refused). ``store_images``: copy the images into the map
     (default: when the map already holds its images)."""
-    from vlm_vpr_ros.pipeline import descriptor_for_map
+    from vlm_vpr_ros.maps.reference_map import descriptor_for_map
 
     path, root = Path(map_dir), Path(images_dir)
     if not rows:
@@ -411,7 +243,7 @@ def add_references(map_dir: str | os.PathLike[str], images_dir: str | os.PathLik
             store_images = bool(manifest.get("images"))
         if store_images:
             for f, _, _ in rows:
-                _safe_rel(f)
+                safe_rel(f)
         t0 = time.monotonic()
         feats, good, skipped = _describe(desc, root, rows, progress)
         if not good:
@@ -420,7 +252,7 @@ def add_references(map_dir: str | os.PathLike[str], images_dir: str | os.PathLik
         ids = [rows[i][0] for i in good]
         target = assign_submaps(ref_map, coords, seed)
         gen = int(manifest.get("generation", 0)) + 1
-        tx = _Transaction(path, manifest)
+        tx = Transaction(path, manifest)
         res = EditResult(path, "add", gen, 0, 0, count=len(ids), skipped=skipped)
         try:
             entries = {e["id"]: e for e in tx.new["submaps"]}
@@ -441,8 +273,9 @@ def add_references(map_dir: str | os.PathLike[str], images_dir: str | os.PathLik
                 res.changed.append(sid)
                 entries[sid] = tx.write_submap(sub, gen)
             if store_images:
-                _store_images(tx, root, ids, image_index(path, manifest), gen, move_images)
-            _finish_manifest(tx.new, list(entries.values()), gen, "add", len(ids), source)
+                map_images.store_images(tx, root, ids, image_index(path, manifest), gen,
+                                        move_images)
+            finish_manifest(tx.new, list(entries.values()), gen, "add", len(ids), source)
             tx.commit()
         except BaseException:
             tx.rollback()
@@ -452,31 +285,13 @@ def add_references(map_dir: str | os.PathLike[str], images_dir: str | os.PathLik
         return res
 
 
-def _finish_manifest(manifest: dict, entries: list[dict], gen: int, op: str, count: int,
-                     source: Mapping[str, Any] | None) -> None:
-    from vlm_vpr_ros import __version__
-
-    entries.sort(key=lambda e: e["id"])
-    manifest["submaps"] = entries
-    manifest["n_references"] = sum(int(e["count"]) for e in entries)
-    manifest["n_submaps"] = len(entries)
-    manifest["generation"] = gen
-    manifest["software"] = f"vlm_vpr_ros {__version__}"
-    src = manifest.setdefault("source", {})
-    if src.get("fingerprint"):  # the map no longer equals what build-map would rebuild
-        src["built_fingerprint"] = src.pop("fingerprint")
-    src.setdefault("edits", []).append({
-        "operation": op, "references": count, "generation": gen,
-        "time": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), **dict(source or {})})
-
-
 # -- remove ---------------------------------------------------------------------------------------
 def read_ids_file(path: str | os.PathLike[str]) -> list[str]:
     """Reference ids to remove: one per line (``#`` comments and blank lines ignored), or a
     CSV with a ``file`` column (e.g. a coordinates CSV)."""
     p = Path(path)
     if p.suffix.lower() == ".csv":
-        from vlm_vpr_ros.map_build import read_file_column
+        from vlm_vpr_ros.files.csvio import read_file_column
 
         ids = read_file_column(p)
     else:
@@ -507,7 +322,7 @@ def remove_references(map_dir: str | os.PathLike[str], ids: Iterable[str],
                            "empty map; build a new map instead")
         manifest = ref_map.manifest
         gen = int(manifest.get("generation", 0)) + 1
-        tx = _Transaction(path, manifest)
+        tx = Transaction(path, manifest)
         res = EditResult(path, "remove", gen, 0, 0, count=len(drop))
         try:
             entries = {e["id"]: e for e in tx.new["submaps"]}
@@ -532,8 +347,8 @@ def remove_references(map_dir: str | os.PathLike[str], ids: Iterable[str],
                 for i in stored:
                     del index[i]
                     tx.new["files"].pop(f"{IMAGES_DIR}/{i}", None)
-                _write_image_index(tx, index, gen)
-            _finish_manifest(tx.new, list(entries.values()), gen, "remove", len(drop), source)
+                write_image_index(tx, index, gen)
+            finish_manifest(tx.new, list(entries.values()), gen, "remove", len(drop), source)
             tx.commit()
         except BaseException:
             tx.rollback()

@@ -1,4 +1,9 @@
-"""Validation when loading a map folder: every mismatch is a MapError with a clear message."""
+"""The map folder's contract: format constants, the manifest, and the checks made at load.
+
+Every mismatch is a :class:`~vlm_vpr_ros.errors.MapError` with a message naming the file or
+manifest field. The layouts of the two format versions are described in
+:mod:`vlm_vpr_ros.maps.store` (version 2, written today) and :mod:`vlm_vpr_ros.maps.v1`.
+"""
 
 from __future__ import annotations
 
@@ -6,19 +11,25 @@ import json
 import re
 import zipfile
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
 from vlm_vpr_ros.errors import MapError
+from vlm_vpr_ros.files.atomic import file_sha256
 
+MAP_FORMAT = "vlm_vpr_ros.map"
+MAP_VERSION = 2  # written; see maps/store.py
+SUPPORTED_VERSIONS = (1, 2)
+METRIC = "squared_l2"
+MANIFEST = "manifest.json"
+#: identity keys that must agree between a map and the query-time descriptor
+IDENTITY_KEYS = ("name", "dim", "release", "preprocessing")
 REQUIRED_KEYS = ("format", "version", "descriptor", "metric", "partition", "n_references",
                  "submaps", "files")
 
 
 def read_manifest(path: Path) -> dict:
-    from vlm_vpr_ros.map_io import MANIFEST, MAP_FORMAT, METRIC, SUPPORTED_VERSIONS
-
     if not path.is_dir():
         raise MapError(f"map folder not found: {path}")
     mpath = path / MANIFEST
@@ -110,30 +121,61 @@ def check_structure(manifest: dict, mpath: Path) -> None:
             check_map_relpath(mpath, f"{where}.files.{key}", sfiles[key])
 
 
-def _file(path: Path, manifest: dict, rel: str, verify: bool) -> Path:
-    from vlm_vpr_ros.map_io import sha256_file
-
+def checked_file(path: Path, manifest: Mapping[str, Any], rel: str, verify: bool) -> Path:
+    """The path of a file the manifest lists, after checking that it exists with the listed
+    size (and, with ``verify``, the listed sha256)."""
     p = path / rel
     meta = manifest["files"].get(rel)
-    if meta is None:
+    if not isinstance(meta, dict) or not isinstance(meta.get("bytes"), int):
         raise MapError(f"{path}: {rel} is not listed in the manifest")
-    if not p.is_file():
-        raise MapError(f"{path}: missing file {rel}")
-    size = p.stat().st_size
-    if size != meta.get("bytes"):
-        raise MapError(f"{path}: {rel} has {size} bytes, manifest says {meta.get('bytes')} "
+    if ".." in Path(rel).parts or Path(rel).is_absolute():
+        raise MapError(f"{path}: file {rel!r} is outside the map folder")
+    try:
+        size = p.stat().st_size
+    except OSError:
+        raise MapError(f"{path}: missing file {rel}") from None
+    if size != meta["bytes"]:
+        raise MapError(f"{path}: {rel} has {size} bytes, manifest says {meta['bytes']} "
                        "(truncated or modified)")
-    if verify and sha256_file(p) != meta.get("sha256"):
+    if verify and file_sha256(p) != meta.get("sha256"):
         raise MapError(f"{path}: {rel} checksum mismatch (corrupt or modified)")
     return p
 
 
-def _check_ref_id(path: Path, rel: str, ref_id: Any) -> None:
-    """Reference ids are image paths relative to the images folder: never absolute, no '..'."""
+def file_table(root: Path, rels: list[str]) -> dict[str, dict]:
+    """The manifest's ``files`` entries (size and sha256) of files under ``root``."""
+    return {r: {"bytes": (root / r).stat().st_size, "sha256": file_sha256(root / r)}
+            for r in rels}
+
+
+def verify_files(path: Path, manifest: Mapping[str, Any],
+                 progress: Callable[[str], Any] | None = None) -> list[str]:
+    """sha256 of every listed file against the manifest (``vlm-vpr map verify``); raises
+    MapError naming the first bad one. Returns the files checked."""
+    checked = []
+    for rel in manifest["files"]:
+        checked_file(path, manifest, rel, True)
+        checked.append(rel)
+        if progress is not None:
+            progress(rel)
+    return checked
+
+
+def bad_ref_id(ref_id: Any) -> bool:
+    """Reference ids are image paths relative to the images folder: never empty or absolute,
+    no ``..``, no drive letter, no NUL."""
+    if not isinstance(ref_id, str) or not ref_id.strip():
+        return True
+    parts = re.split(r"[/\\]", ref_id)
+    return (ref_id.startswith(("/", "\\")) or ".." in parts
+            or re.match(r"^[A-Za-z]:", ref_id) is not None or "\0" in ref_id)
+
+
+def check_ref_id(path: Path, rel: str, ref_id: Any) -> None:
+    """MapError when a stored reference id points outside the images folder."""
     if not isinstance(ref_id, str) or not ref_id:
         raise MapError(f"{path}: {rel}: reference id {ref_id!r} is not a file name")
-    parts = ref_id.replace("\\", "/").split("/")
-    if ref_id.startswith(("/", "\\")) or ".." in parts or re.match(r"^[A-Za-z]:", ref_id):
+    if bad_ref_id(ref_id):
         raise MapError(f"{path}: {rel}: reference id {ref_id!r} points outside the images "
                        "folder")
 
@@ -142,7 +184,7 @@ def load_state(path: Path, manifest: dict, verify: bool) -> dict[str, np.ndarray
     rel = manifest.get("descriptor_state")
     if not rel:
         return {}
-    p = _file(path, manifest, rel, verify)
+    p = checked_file(path, manifest, rel, verify)
     try:
         with np.load(p, allow_pickle=False) as npz:
             return {k: npz[k] for k in npz.files}
@@ -150,54 +192,12 @@ def load_state(path: Path, manifest: dict, verify: bool) -> dict[str, np.ndarray
         raise MapError(f"{path}: cannot read {rel}: {exc}") from exc
 
 
-def load_submap(path: Path, manifest: dict, entry: Any, verify: bool):
-    import faiss
-
-    from vlm_vpr_ros.map_io import Submap
-
-    try:
-        sid, count, centroid, files = (entry["id"], int(entry["count"]),
-                                       tuple(float(c) for c in entry["centroid"]), entry["files"])
-    except (KeyError, TypeError, ValueError) as exc:
-        raise MapError(f"{path}: malformed submap entry {entry!r}") from exc
-    dim = manifest["descriptor"]["dim"]
-    ip = _file(path, manifest, files["index"], verify)
-    try:
-        index = faiss.deserialize_index(np.fromfile(ip, dtype=np.uint8))
-    except RuntimeError as exc:
-        raise MapError(f"{path}: cannot read FAISS index {files['index']}: "
-                       f"{str(exc).splitlines()[0]}") from exc
-    kind = manifest.get("index", "flat")
-    expected = {"flat": faiss.IndexFlatL2, "fp16": faiss.IndexScalarQuantizer}.get(kind)
-    if expected is None or not isinstance(index, expected):
-        raise MapError(f"{path}: submap {sid} index is {type(index).__name__}, manifest says "
-                       f"{kind!r}")
-    if index.d != dim:
-        raise MapError(f"{path}: submap {sid} index has dim {index.d}, manifest says {dim}")
-    if index.ntotal != count:
-        raise MapError(f"{path}: submap {sid} index holds {index.ntotal} vectors, manifest "
-                       f"says {count}")
-    cp = _file(path, manifest, files["coords"], verify)
-    try:
-        coords = np.load(cp, allow_pickle=False)
-        if not isinstance(coords, np.ndarray):  # an .npz under a .npy name
-            raise ValueError("not a .npy array")
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
-        raise MapError(f"{path}: cannot read {files['coords']}: {exc}") from exc
-    if coords.shape != (count, 2) or not np.all(np.isfinite(coords)):
-        raise MapError(f"{path}: submap {sid} coordinates have shape {coords.shape}, "
-                       f"expected ({count}, 2) finite values")
-    idp = _file(path, manifest, files["ids"], verify)
-    try:
-        ids = json.loads(idp.read_text(encoding="utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise MapError(f"{path}: corrupt {files['ids']}: {exc}") from exc
-    if not isinstance(ids, list) or len(ids) != count:
-        raise MapError(f"{path}: submap {sid} has {len(ids) if isinstance(ids, list) else '?'} "
-                       f"ids, expected {count}")
-    suspects = [i for i in ids if not isinstance(i, str) or not i or i[0] in "/\\"
-                or ".." in i or i[1:2] == ":"]  # cheap pre-filter (millions of ids)
-    for ref_id in suspects:
-        _check_ref_id(path, files["ids"], ref_id)
-    return Submap(sid, centroid, coords.astype(np.float64), [str(i) for i in ids], index,
-                  kind=kind)
+def check_descriptor_identity(map_identity: Mapping[str, Any],
+                              query_identity: Mapping[str, Any]) -> None:
+    """Raise MapError when a query-time descriptor would not be comparable with the map's."""
+    diffs = [k for k in IDENTITY_KEYS
+             if map_identity.get(k) != query_identity.get(k)]
+    if diffs:
+        detail = "; ".join(f"{k}: map={map_identity.get(k)!r} query={query_identity.get(k)!r}"
+                           for k in diffs)
+        raise MapError(f"descriptor mismatch between map and query ({detail})")

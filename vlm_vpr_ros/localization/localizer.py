@@ -6,13 +6,13 @@ Two fusion modes (docs/fusion.md):
   picks every submap it intersects, within a budget of references; on maps small enough
   (``global_merge_max_refs``) the global top-p is merged in, so a prior can never hide the best
   visual match. Candidates are scored by visual likelihood + prior likelihood
-  (:mod:`vlm_vpr_ros.fusion.posterior`) and the estimate is the geographic vote's winner.
+  (:mod:`vlm_vpr_ros.localization.fusion.posterior`) and the estimate is the geographic vote's winner.
 * ``paper``: the method of Waheed et al. — the one submap nearest to the prior, top-p, re-rank by
   haversine distance to the prior (``use_submaps`` / ``rerank`` / ``n_submaps`` ablations).
 
 In both modes ``uncertainty_m`` is the calibrated radius that holds the true position with 68 %
 probability and ``radius95_m`` the 95 % one, from the posterior over the candidates
-(:mod:`vlm_vpr_ros.fusion.calibration`). Always finite: capped at half the Earth's circumference.
+(:mod:`vlm_vpr_ros.localization.fusion.calibration`). Always finite: capped at half the Earth's circumference.
 """
 
 from __future__ import annotations
@@ -25,12 +25,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from vlm_vpr_ros.errors import ConfigError, DescriptorError
-from vlm_vpr_ros.fusion.calibration import load_calibration
-from vlm_vpr_ros.fusion.error_model import ErrorModel, load_error_models
-from vlm_vpr_ros.fusion.posterior import fuse
+from vlm_vpr_ros.localization.fusion.calibration import load_calibration
+from vlm_vpr_ros.localization.fusion.error_model import ErrorModel, load_error_models
+from vlm_vpr_ros.localization.fusion.posterior import fuse
 from vlm_vpr_ros.geodesy import MAX_DISTANCE_KM, haversine_km
-from vlm_vpr_ros.map_io import ReferenceMap, submap_radius_km
-from vlm_vpr_ros.partition import country_codes, nearest_centroids
+from vlm_vpr_ros.maps.reference_map import ReferenceMap
+from vlm_vpr_ros.maps.submap import submap_radius_km
+from vlm_vpr_ros.maps.partition import country_codes, nearest_centroids
 from vlm_vpr_ros.priors.base import Prior, PriorResult
 from vlm_vpr_ros.priors.simple import valid_latlon
 from vlm_vpr_ros.types import Candidate, Hypothesis

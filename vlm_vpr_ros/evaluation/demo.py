@@ -15,11 +15,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from vlm_vpr_ros.imageio import load_image
+from vlm_vpr_ros.files.images import load_image
 
 log = logging.getLogger(__name__)
 
-DEMO_DATA = Path(__file__).resolve().parent / "data" / "osv5m_demo"
+DEMO_DATA = Path(__file__).resolve().parents[1] / "data" / "osv5m_demo"
 
 
 def make_query(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -40,8 +40,8 @@ def make_query(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
 
 def make_queries(out_dir: Path, seed: int = 0) -> Path:
     """Write query images + ``queries.csv`` (file, lat, lon ground truth); returns the CSV."""
-    from vlm_vpr_ros.csvio import write_csv_atomic
-    from vlm_vpr_ros.map_build import read_coords_csv
+    from vlm_vpr_ros.files.csvio import write_csv_atomic
+    from vlm_vpr_ros.maps.build_images import read_coords_csv
 
     qdir = out_dir / "queries"
     qdir.mkdir(parents=True, exist_ok=True)
@@ -58,12 +58,13 @@ def make_queries(out_dir: Path, seed: int = 0) -> Path:
 
 
 def run_demo(out: str | Path, with_bag: bool = True) -> int:
-    from vlm_vpr_ros.batch import RESULT_FIELDS, localize_files
-    from vlm_vpr_ros.csvio import write_csv_atomic
-    from vlm_vpr_ros.evaluation import evaluate_results_csv, format_table
-    from vlm_vpr_ros.localizer import LocalizerConfig
-    from vlm_vpr_ros.map_build import build_map, read_file_column
-    from vlm_vpr_ros.pipeline import LocalizationPipeline
+    from vlm_vpr_ros.localization.batch import RESULT_FIELDS, localize_files
+    from vlm_vpr_ros.files.csvio import write_csv_atomic
+    from vlm_vpr_ros.evaluation.metrics import evaluate_results_csv, format_table
+    from vlm_vpr_ros.localization.localizer import LocalizerConfig
+    from vlm_vpr_ros.maps.build_images import build_map
+    from vlm_vpr_ros.files.csvio import read_file_column
+    from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
     from vlm_vpr_ros.priors import create_prior_provider
 
     out = Path(out)
@@ -127,7 +128,7 @@ def _bag_demo(out: Path, map_dir: Path, queries: Path, priors_csv: Path) -> None
         log.warning("bag demo unavailable (%s)", exc)
         return
     print("[4/4] making a demo bag from the queries and evaluating it ...", flush=True)
-    from vlm_vpr_ros.evaluation import format_table
+    from vlm_vpr_ros.evaluation.metrics import format_table
 
     info = run_bag_demo(out / "bag_demo", map_dir, out / "queries", queries, priors_csv)
     print(format_table({"bag, posterior fusion (default)": info["summary"]},

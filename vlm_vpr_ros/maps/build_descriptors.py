@@ -26,9 +26,9 @@ from vlm_vpr_ros.geodesy import farthest_km
 from vlm_vpr_ros.maps import indexes
 from vlm_vpr_ros.maps.balance import split_large
 from vlm_vpr_ros.maps.sources import CHUNK, DescriptorSource, descriptor_identity, open_source
-from vlm_vpr_ros.maps.store import VERSION, encode_ids, file_table, pq_name, prefetch_rows, \
-    write_submap
-from vlm_vpr_ros.outputs import StagedOutput
+from vlm_vpr_ros.maps.store import (VERSION, encode_ids, file_table, pq_name, prefetch_rows,
+                                    write_submap)
+from vlm_vpr_ros.files.outputs import StagedOutput
 
 log = logging.getLogger(__name__)
 
@@ -51,9 +51,9 @@ def _fingerprint(rows, source: DescriptorSource, settings: dict) -> str:
 def _up_to_date(out_dir: Path, fp: str, overwrite: bool) -> bool:
     """True when ``out_dir`` already holds this map; a different map (or a folder this tool did
     not write) is refused unless ``overwrite`` (then replaced only when the new one is complete,
-    see :mod:`vlm_vpr_ros.outputs`)."""
-    from vlm_vpr_ros.map_io import MANIFEST
-    from vlm_vpr_ros.outputs import written_by_us
+    see :mod:`vlm_vpr_ros.files.outputs`)."""
+    from vlm_vpr_ros.maps.format import MANIFEST
+    from vlm_vpr_ros.files.outputs import written_by_us
 
     if not ((out_dir / MANIFEST).is_file() and written_by_us(out_dir, "map")) or overwrite:
         return False
@@ -79,7 +79,7 @@ def _prepare_work(work: Path, fp: str) -> None:
             log.info("discarding a partial build with other inputs or settings")
             shutil.rmtree(work)
     work.mkdir(parents=True, exist_ok=True)
-    from vlm_vpr_ros.map_io import atomic_write_json
+    from vlm_vpr_ros.files.atomic import atomic_write_json
 
     atomic_write_json(job, {"fingerprint": fp})
 
@@ -255,9 +255,9 @@ def build_from_descriptors(source_path: str | Path, coords_csv: str | Path,
                            overwrite: bool = False, progress: bool = True) -> Any:
     """Build (or resume) a v2 map from precomputed descriptors; returns the opened map.
     Built in ``.OUT.partial/`` beside ``out_dir`` and swapped in when complete
-    (:mod:`vlm_vpr_ros.outputs`): an old map stays until then."""
-    from vlm_vpr_ros.map_build import read_coords_csv
-    from vlm_vpr_ros.map_io import ReferenceMap
+    (:mod:`vlm_vpr_ros.files.outputs`): an old map stays until then."""
+    from vlm_vpr_ros.maps.build_images import read_coords_csv
+    from vlm_vpr_ros.maps.reference_map import ReferenceMap
 
     t0 = time.monotonic()
     out_dir = Path(out_dir)
@@ -286,10 +286,11 @@ def _build_into(staged: Any, source: DescriptorSource, identity: dict, state: di
                 ram_budget_mb: float | None, max_submap_size: int | None, rerank_factor: int,
                 progress: bool, t0: float) -> None:
     """The build proper: scratch in ``staged.work``, the finished map in ``staged.path``."""
-    from vlm_vpr_ros.map_build import plan_kinds
-    from vlm_vpr_ros.map_io import MANIFEST, MAP_FORMAT, METRIC, ReferenceMap, \
-        atomic_save_npz, atomic_write_json
-    from vlm_vpr_ros.partition import make_partition
+    from vlm_vpr_ros.maps.assemble import plan_kinds
+    from vlm_vpr_ros.maps.format import MANIFEST, MAP_FORMAT, METRIC
+    from vlm_vpr_ros.maps.reference_map import ReferenceMap
+    from vlm_vpr_ros.files.atomic import atomic_save_npz, atomic_write_json
+    from vlm_vpr_ros.maps.partition import make_partition
     from vlm_vpr_ros import __version__
 
     out_dir = staged.path
@@ -397,7 +398,7 @@ def _pq_codebook(desc: _Rows, keep: np.ndarray, kinds: list[str], work: Path,
 def convert_map(old: Any, kind: str, rerank_factor: int, seed: int = 0) -> Any:
     """The same submaps (ids, positions, descriptors) with indexes of ``kind``, in memory
     (``vlm-vpr map upgrade``: v1 maps are held in memory anyway)."""
-    from vlm_vpr_ros.map_io import ReferenceMap, Submap
+    from vlm_vpr_ros.maps.reference_map import ReferenceMap, Submap
 
     indexes.check_kind(kind, indexes.SUBMAP_KINDS)
     vecs = [np.ascontiguousarray(s.vectors(), dtype=np.float32) for s in old.submaps]

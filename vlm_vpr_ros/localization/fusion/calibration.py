@@ -32,8 +32,10 @@ from typing import Any, Mapping
 import numpy as np
 
 from vlm_vpr_ros.errors import MapError
-from vlm_vpr_ros.fusion.error_model import ErrorModel
-from vlm_vpr_ros.fusion.posterior import fuse
+from vlm_vpr_ros.files.atomic import atomic_write_json
+from vlm_vpr_ros.localization.fusion.error_model import ErrorModel
+from vlm_vpr_ros.localization.fusion.posterior import fuse
+from vlm_vpr_ros.maps.format import MANIFEST, checked_file, file_table
 from vlm_vpr_ros.geodesy import EARTH_RADIUS_KM, haversine_km, latlon_to_unit
 
 log = logging.getLogger(__name__)
@@ -205,9 +207,7 @@ def load_calibration(ref_map: Any) -> dict[str, Any] | None:
         log.warning("%s: %s is no longer listed in the manifest; radii are uncalibrated",
                     ref_map.path, rel)
         return None
-    from vlm_vpr_ros.map_validate import _file
-
-    p = _file(Path(ref_map.path), ref_map.manifest, rel, True)
+    p = checked_file(Path(ref_map.path), ref_map.manifest, rel, True)
     try:
         doc = json.loads(p.read_text(encoding="utf-8"))
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
@@ -217,8 +217,6 @@ def load_calibration(ref_map: Any) -> dict[str, Any] | None:
 
 def save_calibration(ref_map: Any, doc: Mapping[str, Any]) -> Path:
     """Write ``calibration.json`` into a saved map and list it in the manifest (manifest last)."""
-    from vlm_vpr_ros.map_io import MANIFEST, atomic_write_json, sha256_file
-
     if ref_map.path is None:
         raise MapError("save the map before writing its calibration")
     path = Path(ref_map.path)
@@ -226,9 +224,8 @@ def save_calibration(ref_map: Any, doc: Mapping[str, Any]) -> Path:
     atomic_write_json(path / CALIBRATION_FILE, dict(doc))
     manifest = dict(ref_map.manifest)
     files = dict(manifest.get("files", {}))
-    p = path / CALIBRATION_FILE
-    files[CALIBRATION_FILE] = {"bytes": p.stat().st_size, "sha256": sha256_file(p)}
+    files.update(file_table(path, [CALIBRATION_FILE]))
     manifest["files"], manifest["calibration"] = files, CALIBRATION_FILE
     atomic_write_json(path / MANIFEST, manifest)
     ref_map.manifest = manifest
-    return p
+    return path / CALIBRATION_FILE

@@ -10,34 +10,14 @@ from typing import Any, Mapping
 import numpy as np
 
 from vlm_vpr_ros.config import from_mapping
-from vlm_vpr_ros.descriptors import GlobalDescriptor, create_descriptor
+from vlm_vpr_ros.descriptors import GlobalDescriptor
 from vlm_vpr_ros.errors import MapError
-from vlm_vpr_ros.localizer import Localizer, LocalizerConfig
-from vlm_vpr_ros.map_io import ReferenceMap, check_descriptor_identity
+from vlm_vpr_ros.localization.localizer import Localizer, LocalizerConfig
+from vlm_vpr_ros.maps.reference_map import ReferenceMap, descriptor_for_map
 from vlm_vpr_ros.priors.base import PriorResult
 from vlm_vpr_ros.types import Hypothesis
 
 log = logging.getLogger(__name__)
-
-
-def descriptor_for_map(ref_map: ReferenceMap, expect: str | None = None,
-                       options: Mapping[str, Any] | None = None) -> GlobalDescriptor:
-    """Create the query-time descriptor of a map (its stored config + ``options`` such as
-    ``weights``/``device``) and check it is the same as the map's."""
-    ident = ref_map.descriptor_identity
-    if expect and expect != ident["name"]:
-        raise MapError(f"the map at {ref_map.path} was built with descriptor "
-                       f"{ident['name']!r}, but {expect!r} was requested")
-    desc = create_descriptor(ident["name"], {**ident.get("config", {}), **dict(options or {})})
-    if ref_map.descriptor_state:
-        desc.load_state(ref_map.descriptor_state)
-    query_ident = desc.identity()
-    check_descriptor_identity(ident, query_ident)
-    built, now = ident.get("weights_sha256"), query_ident.get("weights_sha256")
-    if built and now and built != now:
-        log.warning("the map was built with another checkpoint of %s (sha256 %s..., now %s...):"
-                    " descriptors may not be comparable", ident["name"], built[:12], now[:12])
-    return desc
 
 
 def _same_state(a: Mapping[str, np.ndarray], b: Mapping[str, np.ndarray]) -> bool:

@@ -1,0 +1,7 @@
+"""The query's path: image → descriptor → (prior) → retrieval → fusion → verification → answer.
+
+* :mod:`.pipeline`: :class:`~.pipeline.LocalizationPipeline` = a map's descriptor + the localizer
+  (``LocalizationPipeline.open(map_dir).localize_image(rgb, prior_result)``);
+* :mod:`.localizer`: submap choice, retrieval, fusion (:mod:`.fusion`);
+* :mod:`.batch` and :mod:`.query_descriptors`: many queries from files (``vlm-vpr localize``).
+"""

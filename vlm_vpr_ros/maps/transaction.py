@@ -1,0 +1,118 @@
+"""One edit of a map folder at a time, and its commit: files under new names, then the
+manifest (``os.replace``, the commit point); a rollback deletes what the edit wrote.
+See :mod:`vlm_vpr_ros.maps.edit` for the generation scheme."""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+import fcntl
+import time
+from pathlib import Path
+from typing import Any, Iterator, Mapping
+
+import numpy as np
+
+from vlm_vpr_ros import __version__
+from vlm_vpr_ros.errors import MapError
+from vlm_vpr_ros.files.atomic import (atomic_save_npy, atomic_write_index, atomic_write_json,
+                                      file_sha256)
+from vlm_vpr_ros.maps import store
+from vlm_vpr_ros.maps.format import MANIFEST
+from vlm_vpr_ros.maps.submap import Submap, submap_radius_km
+
+
+@contextlib.contextmanager
+def edit_lock(map_dir: Path) -> Iterator[None]:
+    """Exclusive lock on a map folder for one edit (fails at once if another edit runs)."""
+    if not (map_dir / MANIFEST).is_file():
+        raise MapError(f"{map_dir} is not a map (no {MANIFEST})")
+    fh = open(map_dir / ".edit.lock", "a+")
+    try:
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise MapError(f"{map_dir} is being edited by another process; try again when it "
+                           "has finished") from None
+        yield
+    finally:
+        fh.close()
+
+
+class Transaction:
+    """Files written under new names, then the manifest; rollback deletes the new files."""
+
+    def __init__(self, path: Path, manifest: dict) -> None:
+        self.path = path
+        self.old = manifest
+        self.new = copy.deepcopy(manifest)
+        self.written: list[str] = []
+
+    def record(self, rel: str) -> None:
+        self.written.append(rel)
+        p = self.path / rel
+        self.new["files"][rel] = {"bytes": p.stat().st_size, "sha256": file_sha256(p)}
+
+    def write_submap(self, sub: Submap, gen: int) -> dict:
+        """Write a submap under generation-stamped names in the map's own format version;
+        returns its manifest entry."""
+        entry = {"id": sub.id, "count": sub.count,
+                 "centroid": [round(float(c), 7) for c in sub.centroid]}
+        if int(self.old.get("version", 1)) >= 2:  # format v2 (vlm_vpr_ros.maps.store)
+            kind = getattr(sub, "kind", "flat")
+            rel = store.write_submap(self.path, f"{sub.id}.g{gen}", kind, sub.index, sub.coords,
+                               list(sub.ids), getattr(sub, "rerank", None))
+            entry.update({"group": getattr(sub, "group", "") or sub.id, "kind": kind,
+                          "radius_km": round(submap_radius_km(sub), 4)})
+            if getattr(sub, "recall", None):
+                entry["recall"] = sub.recall
+        else:
+            stem = f"submaps/{sub.id}.g{gen}"
+            rel = {"index": f"{stem}.faiss", "coords": f"{stem}.coords.npy",
+                   "ids": f"{stem}.ids.json"}
+            atomic_write_index(self.path / rel["index"], sub.index)
+            atomic_save_npy(self.path / rel["coords"], np.asarray(sub.coords, np.float64))
+            atomic_write_json(self.path / rel["ids"], list(sub.ids))
+        for r in rel.values():
+            self.record(r)
+        entry["files"] = rel
+        return entry
+
+    def commit(self) -> None:
+        """Replace the manifest (the commit point). The files the new manifest no longer lists
+        are kept for one more generation (``retired``): a process that opened the previous
+        generation lazily (format v2) can still open its submaps until it reloads; the files
+        retired by the edit before are deleted now."""
+        listed = self.new["files"]
+        for rel in list(listed):
+            if not (self.path / rel).is_file():
+                raise MapError(f"internal: {rel} listed but not written")
+        gone = sorted(set(self.old["files"]) - set(listed))
+        older = [r for r in self.old.get("retired", []) if r not in listed]
+        self.new["retired"] = gone
+        atomic_write_json(self.path / MANIFEST, self.new)
+        for rel in older:
+            with contextlib.suppress(FileNotFoundError):
+                (self.path / rel).unlink()
+
+    def rollback(self) -> None:
+        for rel in self.written:
+            if rel not in self.old["files"]:
+                with contextlib.suppress(FileNotFoundError):
+                    (self.path / rel).unlink()
+
+
+def finish_manifest(manifest: dict, entries: list[dict], gen: int, op: str, count: int,
+                     source: Mapping[str, Any] | None) -> None:
+    entries.sort(key=lambda e: e["id"])
+    manifest["submaps"] = entries
+    manifest["n_references"] = sum(int(e["count"]) for e in entries)
+    manifest["n_submaps"] = len(entries)
+    manifest["generation"] = gen
+    manifest["software"] = f"vlm_vpr_ros {__version__}"
+    src = manifest.setdefault("source", {})
+    if src.get("fingerprint"):  # the map no longer equals what build-map would rebuild
+        src["built_fingerprint"] = src.pop("fingerprint")
+    src.setdefault("edits", []).append({
+        "operation": op, "references": count, "generation": gen,
+        "time": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), **dict(source or {})})
