@@ -21,7 +21,8 @@ streamed in 1 MB blocks), ``drip`` (headers, then one byte every ``delay_s``, at
 nothing is sent until stopped: same as ``hang``), ``echo`` (the answer text is the request
 headers, as a careless proxy or debug server would send them), ``text`` (the answer is
 ``content``, set with :meth:`ChatServer.set`), ``length`` (no text, ``finish_reason:
-"length"``: a reasoning model that spent its token limit on hidden reasoning). Every loop is bounded and stops with the server.
+"length"``: a reasoning model that spent its token limit on hidden reasoning). Every loop is
+bounded and stops with the server.
 
 Dialects (``dialect=``), each with the routes, auth and error bodies of the real server
 (tests/chat_dialects.py): ``openai`` (default), ``openai_reasoning`` (rejects ``max_tokens``
