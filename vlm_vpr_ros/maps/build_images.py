@@ -112,7 +112,7 @@ def build_map(images_dir: str | Path, coords_csv: str | Path, out_dir: str | Pat
               rerank_factor: int = DEFAULT_RERANK_FACTOR, engine: Any = None,
               local_features: str = "sift",
               feature_options: Mapping | None = None) -> ReferenceMap:
-    """Build (or resume building) a map folder; see the README "Map format" section.
+    """Build (or resume building) a map folder; the format is in docs/maps.md ("Map format").
     ``local_features``: verification preset whose local features are stored in the map
     ("sift", "disk_lightglue"; "none": no features, answers unverified; docs/verification.md).
     ``engine``: describe (and fit), partition and index elsewhere, e.g. on Ray
