@@ -183,8 +183,8 @@ def test_sift_features_strongest_first_and_lossless_uint8():
     img = np.zeros((240, 320, 3), np.uint8)
     for k in range(30):  # blobs and corners to detect
         c = (int(RNG.integers(20, 300)), int(RNG.integers(20, 220)))
-        cv2.circle(img, c, int(RNG.integers(3, 12)), tuple(int(v) for v in RNG.integers(60, 255, 3)),
-                   -1)
+        color = tuple(int(v) for v in RNG.integers(60, 255, 3))
+        cv2.circle(img, c, int(RNG.integers(3, 12)), color, -1)
     x = create_feature("sift", {"max_side": 160})
     f = x.extract(img, 50)
     assert 0 < len(f) <= 50 and f.descriptors.dtype == np.uint8 and f.size == (160, 120)

@@ -31,7 +31,7 @@ import logging
 import os
 import threading
 from pathlib import Path
-from typing import Any, Callable, Iterable, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -65,13 +65,11 @@ def write_submap_features(root: Path, stem: str, feats: Sequence[LocalFeatures],
     """Write one submap's feature files (row j = ``feats[j]``) through temporary names;
     returns ``{"files": {role: rel}, "count": n, "n_keypoints": N}``."""
     rels = feature_files(stem)
-    counts = np.array([len(f) for f in feats], dtype=np.int64)
+    counts = np.array([len(f) for f in feats], dtype=np.int64)  # pass 1 of 2 over ``feats``
     total = int(counts.sum())
     rows = np.zeros((len(feats), 4), np.int64)
     rows[:, 0] = np.concatenate([[0], np.cumsum(counts)[:-1]]) if len(feats) else []
     rows[:, 1] = counts
-    for j, f in enumerate(feats):
-        rows[j, 2:] = f.size
     tmp = {r: (root / rel).with_name(f".{Path(rel).name}.tmp{os.getpid()}")
            for r, rel in rels.items()}
     try:
@@ -79,6 +77,9 @@ def write_submap_features(root: Path, stem: str, feats: Sequence[LocalFeatures],
         de = _open_npy(tmp["descriptors"], np.dtype(dtype), (total, dim))
         for j, f in enumerate(feats):
             a, n = int(rows[j, 0]), int(rows[j, 1])
+            rows[j, 2:] = f.size
+            if len(f) != n:
+                raise MapError(f"local features of row {j} changed while being written")
             if n:
                 kp[a:a + n] = np.asarray(f.keypoints, np.float32)
                 de[a:a + n] = np.asarray(f.descriptors).astype(dtype, copy=False)
@@ -135,18 +136,19 @@ def make_section(feature_identity: Mapping[str, Any], preset: str, max_keypoints
             "submaps": {sid: dict(e) for sid, e in sorted(submaps.items())}}
 
 
-def attach_features(map_dir: Path, manifest: dict, by_submap: Mapping[str, Iterable[LocalFeatures]],
+def attach_features(map_dir: Path, manifest: dict,
+                    by_submap: Mapping[str, Sequence[LocalFeatures]],
                     feature_identity: Mapping[str, Any], preset: str, max_keypoints: int,
                     query_max_keypoints: int) -> dict:
     """Write the feature files of a saved map (``by_submap[id]``: features in the submap's row
-    order), list them in ``files``, add the section and rewrite the manifest (last). Returns the
-    new manifest."""
+    order; a lazy sequence is read a few times, never held whole), list them in ``files``, add
+    the section and rewrite the manifest (last). Returns the new manifest."""
     dtype = np.dtype(feature_identity["dtype"])
     dim = int(feature_identity["descriptor_dim"])
     entries, rels = {}, []
     for s in manifest["submaps"]:
-        entries[s["id"]] = write_submap_features(map_dir, s["id"], list(by_submap[s["id"]]),
-                                                 dtype, dim)
+        entries[s["id"]] = write_submap_features(map_dir, s["id"], by_submap[s["id"]], dtype,
+                                                 dim)
         rels += list(entries[s["id"]]["files"].values())
     new = dict(manifest)
     new["files"] = {**manifest["files"], **file_table(map_dir, rels)}
