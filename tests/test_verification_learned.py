@@ -67,3 +67,41 @@ def test_missing_garbage_and_foreign_checkpoints_are_clear_errors(weights, tmp_p
     # LightGlue weights given to DISK: every key checked, no partial load
     with pytest.raises(DescriptorError, match="does not fit this model"):
         create_feature("disk", {"weights": str(d / "disk_lightglue.pth")})
+
+
+def test_a_disk_lightglue_map_end_to_end(weights, demo_data, tmp_path):
+    """build-map with --local-features disk_lightglue stores float16 DISK features (with the
+    checkpoint's sha256, never its path), and queries verify with LightGlue."""
+    import csv
+
+    from vlm_vpr_ros.files.images import load_image
+    from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
+    from vlm_vpr_ros.maps.build_images import build_map
+    from vlm_vpr_ros.maps.features import FeatureStore
+    from vlm_vpr_ros.maps.reference_map import ReferenceMap
+
+    d, _, _ = weights
+    rows = list(csv.DictReader(open(demo_data / "coords.csv")))[:6]
+    coords = tmp_path / "c.csv"
+    coords.write_text("file,lat,lon\n" + "".join(f"{r['file']},{r['lat']},{r['lon']}\n"
+                                                 for r in rows))
+    m = tmp_path / "map"
+    build_map(demo_data / "images", coords, m, descriptor="vlad_rootsift_fast",
+              descriptor_config={"max_side": 160, "n_words": 8, "pca_dim": 5}, clusters=2,
+              progress=False, local_features="disk_lightglue",
+              feature_options={"weights": str(d / "depth-save.pth"), "max_side": 128},
+              matcher_options={"weights": str(d / "disk_lightglue.pth")})
+    ref = ReferenceMap.load(m)
+    sec = ref.manifest["local_features"]
+    assert sec["preset"] == "disk_lightglue" and sec["feature"]["dtype"] == "float16"
+    assert len(sec["feature"]["weights_sha256"]) == 64 and str(d) not in str(sec)
+    store = FeatureStore.open(m, ref.manifest)
+    assert store.get(ref.submaps[0].id, 0).descriptors.dtype == np.float16
+    pipe = LocalizationPipeline.open(m, verification={
+        "feature_options": {"weights": str(d / "depth-save.pth")},
+        "matcher_options": {"weights": str(d / "disk_lightglue.pth")}})
+    h = pipe.localize_image(load_image(demo_data / "images" / rows[2]["file"]))
+    assert h.verification == "verified" and h.inliers >= 0 and h.status in ("fix", "no_fix")
+    # without the checkpoints at query time: a warning and unverified answers, never a crash
+    pipe = LocalizationPipeline.open(m)
+    assert not pipe.verifier.enabled and "checkpoint" in pipe.verifier.unavailable

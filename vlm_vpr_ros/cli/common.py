@@ -95,11 +95,18 @@ def add_verification_args(parser: argparse.ArgumentParser) -> None:
                         "look-alikes) may be fixes")
     g.add_argument("--trust-operator-prior", action="store_true",
                    help="... only for priors with their own sigma_km (--prior fixed)")
+    g.add_argument("--feature-option", metavar="KEY=VALUE", action="append", default=[],
+                   help="local feature setting not stored in the map, repeatable (e.g. "
+                        "weights=PATH for a disk_lightglue map)")
+    g.add_argument("--matcher-option", metavar="KEY=VALUE", action="append", default=[],
+                   help="matcher setting, repeatable (e.g. weights=PATH for LightGlue)")
 
 
 def verification_config(args: argparse.Namespace) -> VerificationConfig:
     return VerificationConfig(args.verify_top_k, args.verification_required,
-                              args.reference_images)
+                              args.reference_images,
+                              feature_options=parse_kv(args.feature_option),
+                              matcher_options=parse_kv(args.matcher_option))
 
 
 def status_policy(args: argparse.Namespace) -> StatusPolicy:
@@ -118,9 +125,14 @@ def add_local_feature_args(parser: argparse.ArgumentParser) -> None:
                              "with --descriptors; docs/verification.md)")
     parser.add_argument("--feature-option", metavar="KEY=VALUE", action="append", default=[],
                         help="local feature setting, repeatable (e.g. weights=PATH for disk)")
+    parser.add_argument("--matcher-option", metavar="KEY=VALUE", action="append", default=[],
+                        help="matcher setting for the build's calibration, repeatable (e.g. "
+                             "weights=PATH for LightGlue)")
 
 
-def local_feature_options(args: argparse.Namespace) -> tuple[str, dict]:
-    """(preset or 'none', feature options) of build-map."""
-    return (args.local_features or ("none" if getattr(args, "descriptors", None) else "sift"),
-            parse_kv(args.feature_option))
+def local_feature_options(args: argparse.Namespace) -> dict:
+    """build-map's ``local_features``, ``feature_options`` and ``matcher_options``."""
+    return {"local_features": args.local_features
+            or ("none" if getattr(args, "descriptors", None) else "sift"),
+            "feature_options": parse_kv(args.feature_option),
+            "matcher_options": parse_kv(args.matcher_option)}

@@ -171,7 +171,7 @@ def cmd_build_map(args: argparse.Namespace) -> int:
     from vlm_vpr_ros.maps.build_images import build_map
 
     check_source_args(args)
-    local, feature_opts = local_feature_options(args)
+    local = local_feature_options(args)
     if args.bag:
         from vlm_vpr_ros.bags.teach import build_map_from_bag
 
@@ -181,7 +181,7 @@ def cmd_build_map(args: argparse.Namespace) -> int:
             args.bag, args.out, teach_config(args), overwrite=args.overwrite,
             descriptor=args.descriptor, descriptor_config=descriptor_options(args),
             partition=args.partition, clusters=args.clusters, index=args.index or "flat",
-            local_features=local, feature_options=feature_opts)
+            **local)
         print(res.describe())
         print(f"map {args.out}: {m.n_references} references, {len(m.submaps)} submaps "
               f"({m.partition_method}), descriptor {m.descriptor_identity['name']} "
@@ -196,7 +196,7 @@ def cmd_build_map(args: argparse.Namespace) -> int:
         if args.engine == "ray":
             raise ConfigError("--descriptors builds out of core in this process; --engine ray "
                               "is for images (describe them with 'vlm-vpr describe')")
-        if local != "none":
+        if local["local_features"] != "none":
             raise ConfigError("--descriptors builds from precomputed descriptors: there are no "
                               "images to extract local features from (verify at query time "
                               "with --reference-images DIR; docs/verification.md)")
@@ -217,7 +217,7 @@ def cmd_build_map(args: argparse.Namespace) -> int:
         m = build_map(args.images, args.coords, args.out, descriptor=args.descriptor,
                       descriptor_config=descriptor_options(args), partition=args.partition,
                       clusters=args.clusters, overwrite=args.overwrite, index=args.index,
-                      local_features=local, feature_options=feature_opts, **sizing)
+                      **local, **sizing)
     print(f"map {args.out}: {m.n_references} references, {len(m.submaps)} submaps "
           f"({m.partition_method}), descriptor {m.descriptor_identity['name']} "
           f"{m.dim}-D")

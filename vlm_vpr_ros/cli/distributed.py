@@ -85,9 +85,7 @@ def cmd_build_map_ray(args: argparse.Namespace):
     from vlm_vpr_ros.cli.common import local_feature_options
     from vlm_vpr_ros.distributed.build import build_map_ray
 
-    local, feature_opts = local_feature_options(args)
     return build_map_ray(args.images, args.coords, args.out, descriptor=args.descriptor,
                          descriptor_config=descriptor_options(args), partition=args.partition,
                          clusters=args.clusters, overwrite=args.overwrite, index=args.index,
-                         options=engine_options(args), local_features=local,
-                         feature_options=feature_opts)
+                         options=engine_options(args), **local_feature_options(args))

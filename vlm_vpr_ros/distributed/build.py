@@ -58,7 +58,8 @@ def build_map_ray(images_dir: str | Path, coords_csv: str | Path, out_dir: str |
                   partition: str = "kmeans", clusters: int = 100, overwrite: bool = False,
                   seed: int = 0, index: str = "flat",
                   options: DescribeOptions | None = None, local_features: str = "sift",
-                  feature_options: Mapping[str, Any] | None = None) -> ReferenceMap:
+                  feature_options: Mapping[str, Any] | None = None,
+                  matcher_options: Mapping[str, Any] | None = None) -> ReferenceMap:
     """``build_map`` with the Ray engine (starts a local Ray without ``ray_address``). The
     references' local features (``local_features``, docs/verification.md) are extracted by
     the driver after the Ray pass, in the build's resumable chunks."""
@@ -73,4 +74,5 @@ def build_map_ray(images_dir: str | Path, coords_csv: str | Path, out_dir: str |
                          descriptor_config=descriptor_config, partition=partition,
                          clusters=clusters, overwrite=overwrite, progress=opts.progress,
                          seed=seed, index=index, engine=RayMapEngine(session, opts),
-                         local_features=local_features, feature_options=feature_options)
+                         local_features=local_features, feature_options=feature_options,
+                         matcher_options=matcher_options)

@@ -110,8 +110,8 @@ def build_map(images_dir: str | Path, coords_csv: str | Path, out_dir: str | Pat
               progress: bool = True, seed: int = 0, index: str = "flat",
               ram_budget_mb: float | None = None, max_submap_size: int | None = None,
               rerank_factor: int = DEFAULT_RERANK_FACTOR, engine: Any = None,
-              local_features: str = "sift",
-              feature_options: Mapping | None = None) -> ReferenceMap:
+              local_features: str = "sift", feature_options: Mapping | None = None,
+              matcher_options: Mapping | None = None) -> ReferenceMap:
     """Build (or resume building) a map folder; the format is in docs/maps.md ("Map format").
     ``local_features``: verification preset whose local features are stored in the map
     ("sift", "disk_lightglue"; "none": no features, answers unverified; docs/verification.md).
@@ -129,7 +129,7 @@ def build_map(images_dir: str | Path, coords_csv: str | Path, out_dir: str | Pat
     check_kind(index)  # validate the name before any work
     from vlm_vpr_ros.localization.verification.build import ReferenceExtractor
 
-    refx = ReferenceExtractor(desc, local_features, feature_options)
+    refx = ReferenceExtractor(desc, local_features, feature_options, matcher_options)
     if index == "auto" and ram_budget_mb is None:
         raise MapError("--index auto needs --ram-budget-mb")
     extra_opts = (ram_budget_mb, max_submap_size, rerank_factor)
@@ -248,7 +248,7 @@ def write_local_features(ref_map: ReferenceMap, refx: Any, features_of: Any,
     log.info("local features stored (%s, %.0f kB per reference), %.1f s",
              refx.preset.name, ref_map.manifest["local_features"]["bytes"]
              / max(1, ref_map.n_references) / 1e3, time.monotonic() - t0)
-    calibrate_map(ref_map, progress=progress)
+    calibrate_map(ref_map, progress=progress, matcher_options=refx.matcher_options)
 
 
 class ChunkFeatures:

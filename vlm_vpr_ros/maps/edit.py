@@ -31,7 +31,8 @@ from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
-from vlm_vpr_ros.errors import DataError, ImageDecodeError, MapError
+from vlm_vpr_ros.errors import (ConfigError, DataError, DescriptorError, ImageDecodeError,
+                                MapError)
 from vlm_vpr_ros.geodesy import haversine_km, spherical_mean
 from vlm_vpr_ros.localization.verification.build import (calibrate_map, edit_features,
                                                          map_extractor)
@@ -305,8 +306,13 @@ def add_references(map_dir: str | os.PathLike[str], images_dir: str | os.PathLik
 def recalibrate(path: Path, store: Any) -> None:
     """After a committed edit of a map with local features: its leave-one-out calibration of
     p_correct again (the look-alikes of the map changed; docs/verification.md)."""
-    if store is not None:
+    if store is None:
+        return
+    try:
         calibrate_map(ReferenceMap.load(path, verify=False))
+    except (ConfigError, DescriptorError) as exc:  # e.g. learned weights not at hand here
+        log.warning("%s: p_correct keeps its earlier calibration (%s); recalibrate where the "
+                    "matcher's weights are", path, exc)
 
 
 # -- remove ---------------------------------------------------------------------------------------

@@ -41,8 +41,10 @@ class ReferenceExtractor:
     """Global descriptors and local features of reference images (module docstring)."""
 
     def __init__(self, descriptor: Any, preset: str | None,
-                 feature_options: Mapping[str, Any] | None = None) -> None:
+                 feature_options: Mapping[str, Any] | None = None,
+                 matcher_options: Mapping[str, Any] | None = None) -> None:
         self.descriptor = descriptor
+        self.matcher_options = dict(matcher_options or {})  # for the calibration's matches
         self.preset: VerifierPreset | None = None
         self.extractor = None
         if preset not in NO_FEATURES and preset is not None:
@@ -112,7 +114,8 @@ class _Lazy(Sequence):
 
 
 def calibrate_map(ref_map: Any, max_queries: int = LOO_QUERIES, top_k: int = 20,
-                  progress: bool = False, seed: int = 0) -> dict[str, Any] | None:
+                  progress: bool = False, seed: int = 0,
+                  matcher_options: Mapping[str, Any] | None = None) -> dict[str, Any] | None:
     """Leave-one-out calibration of ``p_correct`` on a saved map with stored local features,
     written as its ``verification.json``; None when the map stores no features."""
     from vlm_vpr_ros.maps.features import FeatureStore
@@ -124,8 +127,9 @@ def calibrate_map(ref_map: Any, max_queries: int = LOO_QUERIES, top_k: int = 20,
     from vlm_vpr_ros.localization.verification.presets import get_preset
 
     preset = get_preset(store.preset or "sift")
-    matcher = create_matcher(preset.matcher, preset.matcher_config)  # stored features are
-    geometry = from_mapping(GeometryConfig, preset.geometry, "geometry")  # the queries
+    matcher = create_matcher(preset.matcher, {**preset.matcher_config,  # stored features are
+                                              **dict(matcher_options or {})})
+    geometry = from_mapping(GeometryConfig, preset.geometry, "geometry")  # ... the queries
     owners = [(si, j) for si, s in enumerate(ref_map.submaps) for j in range(s.count)]
     coords = np.concatenate([np.asarray(s.coords) for s in ref_map.submaps])
     starts = np.cumsum([0] + [s.count for s in ref_map.submaps])

@@ -16,9 +16,9 @@ import logging
 import math
 import threading
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
@@ -45,6 +45,10 @@ class VerificationConfig:
     required: bool = False  # a missing / damaged feature store is an error at open
     images_dir: str = ""  # reference images for maps without stored features
     cache_size: int = 256  # reference features extracted from images, kept in memory
+    #: local-feature / matcher settings that are not part of the map (learned weights' paths,
+    #: device), e.g. {"weights": "/data/disk/depth-save.pth"}
+    feature_options: Mapping[str, Any] = field(default_factory=dict)
+    matcher_options: Mapping[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if not (0 <= self.top_k <= 1000 and self.cache_size >= 0):
@@ -106,7 +110,8 @@ class Verifier:
             log.info("%s stores no local features: verifying against the images in %s",
                      root, self.images_root)
         try:
-            self._build(dict(feature_options or {}), dict(matcher_options or {}))
+            self._build({**config.feature_options, **dict(feature_options or {})},
+                        {**config.matcher_options, **dict(matcher_options or {})})
         except (MapError, ConfigError, DescriptorError) as exc:
             msg = f"{root}: local features unusable: {exc}"
             if config.required:
@@ -125,6 +130,12 @@ class Verifier:
                 raise MapError(f"{self.map.path}: stored local features are "
                                f"{self.store.feature} but the query side would use "
                                f"{self.extractor.identity()} (differs in {', '.join(diff)})")
+            built = self.store.feature.get("weights_sha256")
+            now = self.extractor.identity().get("weights_sha256")
+            if built and now and built != now:
+                log.warning("%s: the map's %s features were extracted with another checkpoint "
+                            "(sha256 %s..., now %s...): matches may be weaker", self.map.path,
+                            p.feature, built[:12], now[:12])
         doc = load_doc(self.map)
         if doc is not None and doc.get("feature") not in (None, self.extractor.identity()) \
                 and _same_feature(doc["feature"], self.extractor.identity()):
