@@ -98,6 +98,10 @@ _WHAT = {"map": "a map (no vlm_vpr_ros manifest.json)",
          "shards": "a descriptor shard folder written by 'vlm-vpr describe'"}
 
 
+_NOUN = {"map": "a map", "bag": "a bag", "evaluation": "an evaluation",
+         "shards": "descriptor shards of another job (other images or settings)"}
+
+
 def check_target(target: Path, kind: str, overwrite: bool) -> bool:
     """Raise OutputError unless ``target`` may be written; True when it holds an old output."""
     if kind not in KINDS:
@@ -112,8 +116,8 @@ def check_target(target: Path, kind: str, overwrite: bool) -> bool:
         raise OutputError(f"{target} exists and is not {_WHAT[kind]}; it is left untouched: "
                           "choose another --out")
     if not overwrite:
-        raise OutputError(f"{target} already holds a {kind}; pass --overwrite to replace it "
-                          "(the old one stays until the new one is complete)")
+        raise OutputError(f"{target} already holds {_NOUN[kind]}; pass --overwrite to replace "
+                          "it (the old one stays until the new one is complete)")
     return True
 
 
@@ -141,8 +145,13 @@ class StagedOutput:
     """Build an output folder next to its target, then swap it in atomically."""
 
     def __init__(self, target: str | os.PathLike[str], kind: str, overwrite: bool = False,
-                 resumable: bool = False, marker: bool = False) -> None:
+                 resumable: bool = False, marker: bool = False,
+                 adopt: Callable[[Path], bool] | None = None) -> None:
+        """``adopt(target)``: True when the target holds this writer's own unfinished work
+        (written in place by an older version): it is then moved into the staging folder and
+        resumed there (resumable writers only)."""
         self.target = Path(target)
+        self.adopt = adopt
         self.kind, self.overwrite, self.resumable, self.marker = kind, overwrite, resumable, marker
         name = self.target.name
         if not name or name in (".", ".."):
@@ -162,6 +171,10 @@ class StagedOutput:
             if old.is_dir() and not self.target.exists():  # a swap cut short by a crash
                 os.replace(old, self.target)
                 log.warning("restored %s from an interrupted swap", self.target)
+            if (self.adopt is not None and self.resumable and self.target.is_dir()
+                    and not self.path.exists() and self.adopt(self.target)):
+                os.replace(self.target, self.path)
+                log.info("resuming the unfinished %s in %s", self.kind, self.target)
         except OSError as exc:
             self._unlock()
             raise OutputError(describe_os_error(exc)) from None
@@ -192,6 +205,9 @@ class StagedOutput:
         """Keep resumable work (the next run continues it); drop everything else."""
         if self.resumable and exc_type is not None:
             remove_temp_files(self.root)
+            if not any(p.is_file() for p in self.root.rglob("*")):
+                shutil.rmtree(self.root, ignore_errors=True)  # nothing done yet
+                return
             log.info("partial output kept in %s; run the same command again to resume",
                      self.root)
             return
