@@ -116,4 +116,21 @@ CATALOGUE: dict[str, tuple[str, str, str]] = {
     "node_relocalize_burst": ("node", "300 relocalize calls in a burst, VLM hung",
                               "every call answered; one shared VLM query; canary not in "
                               "the node log"),
+    # -- writers: one lock per map, describe output safety (issue 19) --------------------------
+    "lock_build_during_add": ("writers", "`build-map --overwrite MAP` while `map add MAP` is "
+                                         "writing", "build waits, then exit 2 naming the "
+                                                    "holder; all added references kept"),
+    "lock_add_during_build": ("writers", "`map add` / `map remove` while `build-map "
+                                         "--overwrite` is swapping", "exit 2 one line, nothing "
+                                                                     "written; rebuilt map whole"),
+    "lock_edit_folder_swapped": ("writers", "map folder moved by a tool that ignores the lock "
+                                            "during an edit", "edit abandoned, nothing written "
+                                                              "through the path"),
+    "out_describe_not_ours": ("output", "`describe --out DIR [--overwrite]` on a user's folder "
+                                        "with shard-like names", "exit 2, folder untouched, no "
+                                                                 "`--overwrite` hint"),
+    "out_describe_into_images": ("output", "`describe --out` = / inside / around the images "
+                                           "folder", "exit 2 before any work"),
+    "out_describe_staged": ("output", "`describe --overwrite` over our shards, interrupted",
+                            "old shards intact until the new ones are complete"),
 }

@@ -216,7 +216,7 @@ def cmd_upgrade(args: argparse.Namespace) -> int:
         raise MapError(f"{out} exists; upgrade writes a new folder beside the old map")
     check_not_inside(out, [args.map])
     # the source's writer lock: no edit or rebuild swaps it while it is read
-    with WriterLock(args.map, inside_ok=True):
+    with WriterLock(args.map, "map upgrade (reading it)", inside_ok=True):
         old = ReferenceMap.load(args.map, verify=True)
         kind = args.index or old.manifest.get("index", "flat")
         new = convert_map(old, "pq" if kind == "auto" else kind,

@@ -25,7 +25,6 @@ import errno
 import fcntl
 import logging
 import os
-import sys
 import time
 from pathlib import Path
 from typing import IO
@@ -63,11 +62,8 @@ def lock_path(target: str | os.PathLike[str]) -> Path:
     return Path(os.path.realpath(t.parent)) / f".{t.name}.lock"
 
 
-def _holder_line() -> str:
-    words = [Path(sys.argv[0]).name if sys.argv and sys.argv[0] else "python"]
-    words += [a for a in sys.argv[1:3] if a and not a.startswith("-") and "/" not in a]
-    return (f"pid {os.getpid()}, {' '.join(words)}, since "
-            f"{time.strftime('%Y-%m-%d %H:%M:%S')}")
+def _holder_line(what: str) -> str:
+    return f"pid {os.getpid()}, {what}, since {time.strftime('%Y-%m-%d %H:%M:%S')}"
 
 
 class WriterLock:
@@ -75,9 +71,11 @@ class WriterLock:
     that may not exist yet). Raises :class:`OutputError` (one line) when another process holds
     it for longer than the wait."""
 
-    def __init__(self, target: str | os.PathLike[str], inside_ok: bool = False,
-                 wait: float | None = None) -> None:
+    def __init__(self, target: str | os.PathLike[str], what: str = "a writer",
+                 inside_ok: bool = False, wait: float | None = None) -> None:
+        """``what``: the operation, named to a writer that is refused (e.g. "map add")."""
         self.target = Path(target)
+        self.what = what
         self.path = lock_path(target)
         self.inside_ok = inside_ok
         self.wait = wait_s() if wait is None else float(wait)
@@ -134,7 +132,7 @@ class WriterLock:
         try:  # who holds it, for the message of a refused writer (best effort)
             fh.seek(0)
             fh.truncate()
-            fh.write(_holder_line() + "\n")
+            fh.write(_holder_line(self.what) + "\n")
             fh.flush()
         except OSError:
             pass

@@ -98,6 +98,8 @@ _WHAT = {"map": "a map (no vlm_vpr_ros manifest.json)",
          "shards": "a descriptor shard folder written by 'vlm-vpr describe'"}
 
 
+_WRITER = {"map": "a map build", "bag": "bag make", "evaluation": "evaluate-bag",
+           "shards": "describe"}
 _NOUN = {"map": "a map", "bag": "a bag", "evaluation": "an evaluation",
          "shards": "descriptor shards of another job (other images or settings)"}
 
@@ -159,7 +161,7 @@ class StagedOutput:
         self.root = self.target.parent / f".{name}.partial"
         self.path = self.root / name  # the new output is built here
         self.work = self.root / "work"  # resumable scratch (kept after failures)
-        self._lock = WriterLock(self.target)
+        self._lock = WriterLock(self.target, _WRITER[kind])
         self.committed = False
 
     # -- context manager -----

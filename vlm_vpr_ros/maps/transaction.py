@@ -23,14 +23,14 @@ from vlm_vpr_ros.maps.submap import Submap, submap_radius_km
 
 
 @contextlib.contextmanager
-def edit_lock(map_dir: Path) -> Iterator[None]:
+def edit_lock(map_dir: Path, what: str = "a map edit") -> Iterator[None]:
     """Exclusive writer lock of a map folder for one edit: the lock every writer of the map
     takes (:class:`~vlm_vpr_ros.files.lock.WriterLock`, ``PARENT/.MAP.lock``; builds with and
     without ``--overwrite`` too). Waits a little, then MapError when another writer holds it."""
     if not (map_dir / MANIFEST).is_file():
         raise MapError(f"{map_dir} is not a map (no {MANIFEST})")
     try:
-        lock = WriterLock(map_dir, inside_ok=True).acquire()
+        lock = WriterLock(map_dir, what, inside_ok=True).acquire()
     except OutputError as exc:
         raise MapError(str(exc)) from None
     try:
