@@ -133,4 +133,15 @@ CATALOGUE: dict[str, tuple[str, str, str]] = {
                                            "folder", "exit 2 before any work"),
     "out_describe_staged": ("output", "`describe --overwrite` over our shards, interrupted",
                             "old shards intact until the new ones are complete"),
+    # -- map content (issue 19): same sizes, other bytes ----------------------------------------
+    "map_submaps_swapped": ("map", "`k000`/`k001` index, coords or ids files swapped (same "
+                                   "sizes)", "exit 2 naming the file: does not match the "
+                                             "manifest"),
+    "map_rewritten_in_place": ("map", "coords rewritten in place (same size) while the map is "
+                                      "open", "next query refused naming the file, until "
+                                              "reloaded; reload refused; `touch` is fine"),
+    "map_garbage_in_place_node": ("node", "index files overwritten in place with garbage under "
+                                          "the node's worker", "failed queries counted in "
+                                                               "`query_errors`, no NaN fix; "
+                                                               "`map_reload` refused"),
 }
