@@ -169,18 +169,21 @@ def sample_offsets(size: int) -> list[int]:
     return [p * PAGE_BYTES for p in pages]
 
 
-def sample_digest(path: Path, size: int | None = None) -> str:
-    """Fingerprint of a large file: sha256 of its size and its sampled pages."""
+def _digest_fd(fd: int, size: int) -> str:
     h = hashlib.sha256(_SAMPLE_TAG)
+    h.update(str(size).encode())
+    for off in sample_offsets(size):
+        h.update(os.pread(fd, PAGE_BYTES, off))
+    return h.hexdigest()
+
+
+def sample_digest(path: str | os.PathLike[str], size: int | None = None) -> str:
+    """Fingerprint of a large file: sha256 of its size and its sampled pages."""
     fd = os.open(path, os.O_RDONLY)
     try:
-        size = os.fstat(fd).st_size if size is None else size
-        h.update(str(size).encode())
-        for off in sample_offsets(size):
-            h.update(os.pread(fd, PAGE_BYTES, off))
+        return _digest_fd(fd, os.fstat(fd).st_size if size is None else size)
     finally:
         os.close(fd)
-    return h.hexdigest()
 
 
 def file_entry(root: Path, rel: str) -> dict:
@@ -199,7 +202,7 @@ def file_table(root: Path, rels: list[str]) -> dict[str, dict]:
     return {r: file_entry(root, r) for r in rels}
 
 
-def content_matches(path: Path, meta: Mapping[str, Any]) -> bool | None:
+def content_matches(path: str | os.PathLike[str], meta: Mapping[str, Any]) -> bool | None:
     """Whether a file still matches its manifest entry by the cheap check (small: sha256;
     large: sampled pages); None when the entry has no fingerprint (an older map)."""
     size = int(meta["bytes"])
@@ -210,41 +213,52 @@ def content_matches(path: Path, meta: Mapping[str, Any]) -> bool | None:
     return sample_digest(path, size) == meta["sample"]
 
 
-def _prefetch_samples(path: Path, size: int) -> None:
-    """Queue the reads of a file's sampled pages (cold disks serve them in parallel)."""
-    if not hasattr(os, "posix_fadvise"):
-        return
-    try:
-        fd = os.open(path, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        for off in sample_offsets(size) if size > SMALL_FILE_BYTES else [0]:
-            os.posix_fadvise(fd, off, PAGE_BYTES if size > SMALL_FILE_BYTES else size,
-                             os.POSIX_FADV_WILLNEED)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
-
-
 def check_content(path: Path, manifest: Mapping[str, Any], rels: list[str]) -> int:
     """The cheap content check of ``rels`` (module docstring); MapError naming the first file
-    that differs. Returns how many files had no fingerprint (maps written before them)."""
-    files = manifest["files"]
-    for rel in rels:
-        _prefetch_samples(path / rel, int(files[rel]["bytes"]))
-    unchecked = 0
-    for rel in rels:
+    that differs. Returns how many files had no fingerprint (maps written before them).
+
+    Files are handled in batches: open, queue the reads of the sampled pages
+    (``posix_fadvise(WILLNEED)``: a cold disk serves them in parallel), then hash."""
+    files, root = manifest["files"], os.fspath(path)
+    todo = [r for r in rels if isinstance(files[r].get("sample"), str)
+            or int(files[r]["bytes"]) <= SMALL_FILE_BYTES]
+    unchecked = len(rels) - len(todo)
+    for start in range(0, len(todo), 256):
+        batch, fds = todo[start:start + 256], []
         try:
-            ok = content_matches(path / rel, files[rel])
-        except OSError as exc:
-            raise MapError(f"{path}: cannot read {rel} ({exc.strerror})") from None
-        if ok is None:
-            unchecked += 1
-        elif not ok:
-            raise content_error(path, rel)
+            for rel in batch:
+                try:
+                    fds.append(os.open(os.path.join(root, rel), os.O_RDONLY))
+                except OSError as exc:
+                    raise MapError(f"{path}: cannot read {rel} ({exc.strerror})") from None
+                size = int(files[rel]["bytes"])
+                _advise(fds[-1], [0] if size <= SMALL_FILE_BYTES else sample_offsets(size),
+                        min(size, SMALL_FILE_BYTES) if size <= SMALL_FILE_BYTES else PAGE_BYTES)
+            for rel, fd in zip(batch, fds):
+                meta, size = files[rel], int(files[rel]["bytes"])
+                try:
+                    if size <= SMALL_FILE_BYTES:
+                        with os.fdopen(os.dup(fd), "rb") as fh:
+                            ok = hashlib.file_digest(fh, "sha256").hexdigest() == meta["sha256"]
+                    else:
+                        ok = _digest_fd(fd, size) == meta["sample"]
+                except OSError as exc:
+                    raise MapError(f"{path}: cannot read {rel} ({exc.strerror})") from None
+                if not ok:
+                    raise content_error(path, rel)
+        finally:
+            for fd in fds:
+                os.close(fd)
     return unchecked
+
+
+def _advise(fd: int, offsets: list[int], length: int) -> None:
+    if hasattr(os, "posix_fadvise"):
+        for off in offsets:
+            try:
+                os.posix_fadvise(fd, off, length, os.POSIX_FADV_WILLNEED)
+            except OSError:
+                return
 
 
 def content_error(path: Path, rel: str, when: str = "") -> MapError:
