@@ -144,4 +144,34 @@ CATALOGUE: dict[str, tuple[str, str, str]] = {
                                           "the node's worker", "failed queries counted in "
                                                                "`query_errors`, no NaN fix; "
                                                                "`map_reload` refused"),
+    # -- inputs of round 3 (issue 19) --------------------------------------------------------
+    "image_bomb_formats": ("image", "12000² TIFF / WebP / GIF / BMP headers in files < 1 KB",
+                           "refused from the header (Pillow), never decoded"),
+    "image_unknown_header": ("image", "bytes with no image header any reader knows",
+                             "refused 'not a supported image', never handed to OpenCV"),
+    "image_bomb_cli": ("image", "WebP / TIFF bombs as `localize` queries and `build-map` "
+                                "references", "flagged `image_error` rows / skipped 'too large'"),
+    "image_bomb_node": ("node", "16383² WebP (~50 bytes) on `image/compressed`",
+                        "undecodable frame, never decoded"),
+    "csv_number_underscore": ("csv", "`3_9.5591`, Arabic-Indic digits, `0x27`, `nan` as "
+                                     "coordinates", "exit 2 naming file:line"),
+    "csv_duplicate_column": ("csv", "CSV header with `lat` (or `file`) twice",
+                             "exit 2 naming the column and both positions"),
+    "csv_nul_after_64k": ("csv", "queries CSV with a NUL byte after 64 KiB",
+                          "exit 2 naming file:line before any query, no traceback"),
+    "cli_prior_timeout": ("config", "`--prior-timeout inf`, `1e309`, `-1`, `nan`, `0`",
+                          "exit 2 naming the option"),
+    "cli_map_build_numbers": ("config", "`--clusters 0/-1`, `--max-submap-size 0`, "
+                                        "`--rerank-factor 0/-1`, `--ram-budget-mb nan`",
+                              "exit 2 before any work"),
+    "cli_descriptor_options": ("config", "`--descriptor-option max_side=1`, `pca_dim=0`, "
+                                         "`n_words=1`", "exit 2 naming the option before the "
+                                                        "build starts"),
+    "node_param_numbers": ("node", "`prior_timeout_s` inf / nan / -1, `top_p` 0, "
+                                   "`descriptor_options.max_side` 1", "refused at configure "
+                                                                      "(ConfigError naming it)"),
+    "bag_start_time_range": ("bag", "`bag make --start-time 4294967296`, `9223372036.85…`, "
+                                    "`1e12`", "exit 2 one line (int32 stamp), nothing written"),
+    "map_one_position": ("map", "12 references at one position",
+                         "builds; queries answer that position"),
 }

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import io
 import os
+import re
 import struct
 import warnings
 from pathlib import Path
@@ -83,8 +84,11 @@ def header_size(data: bytes, what: str = "image") -> tuple[int, int] | None:
         with Image.open(io.BytesIO(data)) as im:  # lazy: header only, no pixel allocated
             w, h = im.size
         return int(w), int(h)
-    except Image.DecompressionBombError as exc:
-        raise ImageDecodeError(f"{what}: unusable size (too large: {exc})") from None
+    except Image.DecompressionBombError as exc:  # Pillow's own limit (2 x 89.5M px)
+        px = re.search(r"\((\d+) pixels\)", str(exc))
+        n = f"{int(px.group(1)):,} px, " if px else ""
+        raise ImageDecodeError(f"{what}: unusable size (too large: {n}at most "
+                               f"{MAX_PIXELS:,})") from None
     except (UnidentifiedImageError, OSError, ValueError, SyntaxError, struct.error,
             EOFError, IndexError, TypeError, KeyError, ZeroDivisionError, MemoryError):
         return _header_size(data, what)
