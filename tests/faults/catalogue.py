@@ -174,4 +174,54 @@ CATALOGUE: dict[str, tuple[str, str, str]] = {
                                     "`1e12`", "exit 2 one line (int32 stamp), nothing written"),
     "map_one_position": ("map", "12 references at one position",
                          "builds; queries answer that position"),
+    "image_bomb_more_formats": ("image", "12000² PGM and JPEG 2000 headers",
+                                "refused from the header, never decoded"),
+    "image_file_too_big": ("image", "a 512 MB+ file named `.jpg`",
+                           "refused from its size, never read"),
+    "csv_utf16": ("csv", "a UTF-16 coordinates CSV", "exit 2: malformed CSV naming file:line"),
+    "csv_crlf_bom_accepted": ("csv", "CRLF line ends, BOM, ` 39.5 `, `+8.9`, `-1e1`, `.5`",
+                              "accepted"),
+    "csv_empty_number": ("csv", "an empty latitude", "exit 2 naming file:line"),
+    "cli_bag_numbers": ("config", "`bag make --rate` / `replay --rate --clock "
+                                  "--wait-subscribers --domain-id` 0, -1, inf, nan, 1e9",
+                        "exit 2 naming the option"),
+    "cli_engine_numbers": ("config", "`describe --shard-size 0 --batch-size 0/5000 --workers 0 "
+                                     "--num-gpus-per-worker -1/nan`", "exit 2 naming the option"),
+    "cli_teach_numbers": ("config", "teach `--fix-tolerance-s nan/0 --min-spacing-m -1`, "
+                                    "`evaluate-bag --max-gt-gap inf --max-frames 0 --top-p 0`",
+                          "exit 2 naming the option"),
+    # -- writers and content (issue 19), continued --------------------------------------------
+    "lock_stale_file": ("writers", "lock file left by a writer killed with -9",
+                        "taken over by the next writer, removed when done"),
+    "lock_wait_env_bad": ("writers", "`VLM_VPR_LOCK_WAIT_S` abc / -1 / inf / nan",
+                          "exit 2 naming it"),
+    "lock_every_writer": ("writers", "build-map (images, descriptors, --bag), map remove / "
+                                     "upgrade, calibrate on a locked map",
+                          "each exit 2 naming the holder, map unchanged"),
+    "lock_other_outputs": ("writers", "`describe` / `bag make` on a locked output",
+                           "exit 2 naming the holder"),
+    "out_upgrade_into_map": ("output", "`map upgrade MAP --out MAP/v2`",
+                             "exit 2 before any work, map unchanged"),
+    "map_old_no_fingerprints": ("map", "a map written before fingerprints",
+                                "opens (small files by sha256, large by size, logged); a "
+                                "swapped small file is still refused"),
+    "map_small_files_edited": ("map", "`descriptor_state.npz` / `calibration.json` edited, "
+                                      "same size", "refused at open naming the file"),
+    "map_sample_field_type": ("map", "manifest fingerprint `sample` is a number",
+                              "exit 2 naming the field"),
+    "map_refused_until_reload": ("map", "a submap refused after a rewrite, then repaired",
+                                 "refused in that process until reloaded; a reload serves it"),
+    "lock_symlinked_map": ("writers", "edit through a symbolic link while the real folder "
+                                      "(or the link's entry) is being written",
+                           "exit 2 naming the holder"),
+    "out_describe_resume_adopt": ("output", "unfinished shard folder written in place by an "
+                                            "older version", "adopted and resumed (finished "
+                                                             "shards kept), then swapped in"),
+    "image_zero_bytes": ("image", "a zero-byte query file", "flagged `image_error` row "
+                                                            "('empty data'), run completes"),
+    "csv_overflow_number": ("csv", "coordinate `1e400`", "exit 2 naming file:line, 'out of "
+                                                         "range'"),
+    "map_live_edit_not_refused": ("map", "`map add` while a process has the map open",
+                                  "old generation still served (no false refusal); reload "
+                                  "sees the new references"),
 }

@@ -159,3 +159,108 @@ def test_node_counts_garbage_map_files_as_query_errors(demo_map, demo_data, tmp_
         assert rt.stats.snapshot()["map_reload_failures"] == 1
     finally:
         rt.stop()
+
+
+@pytest.mark.fault("map_old_no_fingerprints")
+def test_maps_written_before_fingerprints_still_open(twin, tmp_path, caplog):
+    """A map written before fingerprints: it opens; small files are still checked whole (their
+    sha256), large ones by size, and the log says so."""
+    import logging
+
+    from vlm_vpr_ros.errors import MapError
+    from vlm_vpr_ros.maps.reference_map import ReferenceMap
+
+    m, man = _copy(twin, tmp_path)
+    for meta in man["files"].values():
+        meta.pop("sample", None)
+    (m / "manifest.json").write_text(json.dumps(man))
+    with caplog.at_level(logging.INFO):
+        assert ReferenceMap.load(m).n_references == 2 * N
+    assert "written before content fingerprints" in caplog.text
+    a, b = (s["files"] for s in man["submaps"])
+    (m / a["coords"]).write_bytes((m / b["coords"]).read_bytes())  # small: still caught
+    with pytest.raises(MapError, match="does not match the manifest"):
+        ReferenceMap.load(m)
+
+
+@pytest.mark.fault("map_small_files_edited")
+def test_state_and_calibration_edited_in_place(map_copy):
+    """descriptor_state.npz and calibration.json rewritten with the same size: refused at
+    open, naming the file."""
+    from vlm_vpr_ros.errors import MapError
+    from vlm_vpr_ros.maps.reference_map import ReferenceMap
+
+    for rel in ("descriptor_state.npz", "calibration.json"):
+        p = map_copy / rel
+        good = p.read_bytes()
+        bad = bytearray(good)
+        bad[len(bad) // 2] ^= 0x01
+        p.write_bytes(bytes(bad))
+        with pytest.raises(MapError, match=f"{rel} does not match the manifest"):
+            ReferenceMap.load(map_copy)
+        p.write_bytes(good)
+    ReferenceMap.load(map_copy)
+
+
+@pytest.mark.fault("map_sample_field_type")
+def test_fingerprint_field_of_another_type(cli, twin, tmp_path):
+    root = twin[0]
+    m, man = _copy(twin, tmp_path)
+    rel = next(r for r, meta in man["files"].items() if "sample" in meta)
+    man["files"][rel]["sample"] = 123
+    (m / "manifest.json").write_text(json.dumps(man))
+    exit2(_localize(cli, m, root, tmp_path), f"files[{rel!r}].sample", "must be a string")
+
+
+@pytest.mark.fault("map_refused_until_reload")
+def test_refused_submap_comes_back_after_repair_and_reload(twin, tmp_path):
+    """Refused since a rewrite, the submap stays refused in that process even when the bytes
+    are put back; reloading the repaired map serves it again."""
+    from vlm_vpr_ros.errors import MapError
+    from vlm_vpr_ros.localization.localizer import Localizer, LocalizerConfig
+    from vlm_vpr_ros.maps.reference_map import ReferenceMap
+
+    _, desc, coords = twin
+    m, man = _copy(twin, tmp_path)
+    loc = Localizer(ReferenceMap.load(m), LocalizerConfig())
+    idx = m / man["submaps"][0]["files"]["index"]
+    good = idx.read_bytes()
+    time.sleep(0.05)
+    with open(idx, "r+b") as fh:  # garbage over the last page, in place
+        fh.seek(len(good) - 4096)
+        fh.write(np.random.default_rng(1).bytes(4096))
+    with pytest.raises(MapError, match="refused until the map is reloaded"):
+        loc.localize(desc[3])
+    with open(idx, "r+b") as fh:
+        fh.write(good)
+    with pytest.raises(MapError, match="refused until the map is reloaded"):
+        loc.localize(desc[3])
+    loc = Localizer(ReferenceMap.load(m), LocalizerConfig())
+    assert abs(loc.localize(desc[3]).lat - coords[3][0]) < 1e-6
+
+
+@pytest.mark.fault("map_live_edit_not_refused")
+def test_map_add_under_an_open_map_is_not_a_content_change(map_copy, demo_data, tmp_path):
+    """`map add` writes new generation files and keeps the old ones: a process that opened the
+    map before (some submaps open, some not) keeps answering, nothing is refused; a reload
+    sees the new references."""
+    from vlm_vpr_ros.files.images import load_image
+    from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
+    from vlm_vpr_ros.maps.edit import add_references
+
+    pipe = LocalizationPipeline.open(map_copy)
+    pipe.map.submaps[0].opened()  # one open, the others not yet
+    src = (demo_data / "coords.csv").read_text().splitlines()[1:9]
+    folder = tmp_path / "new"
+    folder.mkdir()
+    rows = []
+    for k, line in enumerate(src):
+        f, lat, lon = line.split(",")[:3]
+        shutil.copy(demo_data / "images" / f, folder / f"new_{k}.jpg")
+        rows.append((f"new_{k}.jpg", float(lat), float(lon)))
+    time.sleep(0.05)
+    add_references(map_copy, folder, rows, progress=False)
+    rgb = load_image(demo_data / "images" / src[0].split(",")[0])
+    hyp = pipe.localize_image(rgb)
+    assert np.isfinite(hyp.lat) and hyp.ref_id
+    assert pipe.reloaded().map.n_references == 79

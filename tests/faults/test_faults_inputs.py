@@ -246,3 +246,126 @@ def test_references_at_one_position_build(cli, tmp_path, demo_data):
     rows = list(csv.DictReader((tmp_path / "r.csv").open()))
     assert [(float(r["lat"]), float(r["lon"])) for r in rows] == [(45.0, 7.0)] * 3
     assert sha_tree(coords)  # the input is still there
+
+
+@pytest.mark.fault("image_bomb_more_formats")
+def test_pnm_and_jpeg2000_bombs(no_decode):
+    from PIL import Image
+
+    from vlm_vpr_ros.errors import ImageDecodeError
+    from vlm_vpr_ros.files.images import decode_image_bytes
+
+    pgm = f"P5\n{SIDE} {SIDE}\n255\n".encode() + b"\x00" * 64
+    buf = io.BytesIO()
+    Image.new("RGB", (16, 16)).save(buf, "JPEG2000")
+    j2k = bytearray(buf.getvalue())
+    i = j2k.find(b"ihdr")  # JP2 image header box: height, width (big-endian uint32)
+    j2k[i + 4:i + 12] = struct.pack(">II", SIDE, SIDE)
+    k = j2k.find(b"\xff\x51")  # the codestream's SIZ marker: Xsiz, Ysiz
+    j2k[k + 6:k + 14] = struct.pack(">II", SIDE, SIDE)
+    for data, what in ((pgm, "q.pgm"), (bytes(j2k), "q.jp2")):
+        with pytest.raises(ImageDecodeError, match="too large"):
+            decode_image_bytes(data, what)
+
+
+@pytest.mark.fault("image_file_too_big")
+def test_image_file_larger_than_any_image_is_not_read(tmp_path, monkeypatch):
+    from pathlib import Path
+
+    from vlm_vpr_ros.errors import ImageDecodeError
+    from vlm_vpr_ros.files.images import MAX_FILE_BYTES, load_image
+
+    p = tmp_path / "video.jpg"
+    with open(p, "wb") as fh:  # sparse: no disk used
+        fh.truncate(MAX_FILE_BYTES + 1)
+
+    def no_read(self):
+        raise AssertionError("read a file larger than any image")
+
+    monkeypatch.setattr(Path, "read_bytes", no_read)
+    with pytest.raises(ImageDecodeError, match="video.jpg: unusable file size"):
+        load_image(p)
+
+
+@pytest.mark.fault("csv_utf16")
+def test_utf16_csv(cli, tmp_path, demo_data):
+    (tmp_path / "c.csv").write_text("file,lat,lon\na.jpg,1,1\n", encoding="utf-16")
+    exit2(cli("build-map", "--images", demo_data / "images", "--coords", tmp_path / "c.csv",
+              "--out", tmp_path / "m"), "c.csv:1", "malformed CSV")
+
+
+@pytest.mark.fault("csv_crlf_bom_accepted")
+def test_crlf_and_bom_accepted(tmp_path):
+    from vlm_vpr_ros.evaluation.metrics import read_ground_truth
+
+    (tmp_path / "gt.csv").write_bytes(b"\xef\xbb\xbffile,lat,lon\r\na.jpg, 39.5 ,+8.9\r\n"
+                                      b"b.jpg,-1e1,.5\r\n")
+    assert read_ground_truth(tmp_path / "gt.csv") == {"a.jpg": (39.5, 8.9),
+                                                      "b.jpg": (-10.0, 0.5)}
+
+
+@pytest.mark.fault("csv_empty_number")
+def test_empty_coordinate(cli, tmp_path):
+    (tmp_path / "r.csv").write_text("file,lat,lon\na.jpg,39.5,8.9\n")
+    (tmp_path / "gt.csv").write_text("file,lat,lon\na.jpg,,8.9\n")
+    exit2(cli("evaluate", "--results", tmp_path / "r.csv", "--ground-truth",
+              tmp_path / "gt.csv"), "gt.csv:2", "not numbers")
+
+
+@pytest.mark.fault("cli_bag_numbers")
+def test_bag_command_numbers(cli, tmp_path):
+    for args, opt in ((("bag", "make", "--images", tmp_path, "--coords", tmp_path / "c.csv",
+                        "--out", tmp_path / "b", "--rate"), "--rate"),
+                      (("replay", tmp_path / "b", "--rate"), "--rate"),
+                      (("replay", tmp_path / "b", "--clock"), "--clock"),
+                      (("replay", tmp_path / "b", "--wait-subscribers"), "--wait-subscribers"),
+                      (("replay", tmp_path / "b", "--domain-id"), "--domain-id")):
+        bads = {"--domain-id": ("-1", "300"), "--wait-subscribers": ("-1", "inf", "nan")}
+        for bad in bads.get(opt, ("0", "-1", "inf", "nan", "1e9")):
+            exit2(cli(*args, bad), opt)
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+@pytest.mark.fault("cli_engine_numbers")
+def test_describe_engine_numbers(cli, tmp_path):
+    base = ("describe", "--images", tmp_path, "--coords", tmp_path / "c.csv", "--out",
+            tmp_path / "s")
+    for opt, bad in (("--shard-size", "0"), ("--batch-size", "0"), ("--batch-size", "5000"),
+                     ("--workers", "0"), ("--num-gpus-per-worker", "-1"),
+                     ("--num-gpus-per-worker", "nan")):
+        exit2(cli(*base, opt, bad), opt)
+
+
+@pytest.mark.fault("cli_teach_numbers")
+def test_teach_and_evaluate_bag_numbers(cli, tmp_path):
+    teach = ("build-map", "--bag", tmp_path / "b", "--out", tmp_path / "m")
+    for opt, bad in (("--fix-tolerance-s", "nan"), ("--fix-tolerance-s", "0"),
+                     ("--min-spacing-m", "-1"), ("--max-fix-sigma-m", "0")):
+        exit2(cli(*teach, opt, bad), opt)
+    ev = ("evaluate-bag", tmp_path / "b", "--map", tmp_path / "m")
+    for opt, bad in (("--max-gt-gap", "inf"), ("--max-gt-gap", "-1"), ("--max-frames", "0"),
+                     ("--top-p", "0"), ("--n-submaps", "0"), ("--prior-timeout", "nan")):
+        exit2(cli(*ev, opt, bad), opt)
+
+
+@pytest.mark.fault("image_zero_bytes")
+def test_zero_byte_query(cli, tmp_path, demo_data, demo_map):
+    images = tmp_path / "q"
+    images.mkdir()
+    name = sorted(p.name for p in (demo_data / "images").iterdir())[0]
+    shutil.copy(demo_data / "images" / name, images / name)
+    (images / "empty.jpg").write_bytes(b"")
+    (tmp_path / "q.csv").write_text(f"file\n{name}\nempty.jpg\n")
+    rc, _, _ = cli("localize", "--map", demo_map, "--images", images, "--queries",
+                   tmp_path / "q.csv", "--out", tmp_path / "r.csv")
+    rows = list(csv.DictReader((tmp_path / "r.csv").open()))
+    assert rc == 0 and "image_error" in rows[1]["flags"] and rows[1]["lat"] == ""
+    assert "empty.jpg: empty data" in cli.text
+
+
+@pytest.mark.fault("csv_overflow_number")
+def test_overflowing_coordinate(cli, tmp_path, demo_data):
+    name = sorted(p.name for p in (demo_data / "images").iterdir())[0]
+    (tmp_path / "c.csv").write_text(f"file,lat,lon\n{name},1e400,7\n")
+    exit2(cli("build-map", "--images", demo_data / "images", "--coords", tmp_path / "c.csv",
+              "--out", tmp_path / "m"), "c.csv:2", "out of range")

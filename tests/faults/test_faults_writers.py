@@ -7,6 +7,7 @@ import json
 import shutil
 import threading
 
+import numpy as np
 import pytest
 
 from faults.conftest import exit2, sha_tree
@@ -205,3 +206,126 @@ def test_describe_is_staged_and_replaces_only_its_own(cli, demo_data, tmp_path, 
     assert _describe(cli, demo_data / "images", other, out, "--overwrite")[0] == 0
     assert json.loads((out / "describe.json").read_text())["described"] == 9
     assert sorted(p.name for p in tmp_path.iterdir()) == ["c.csv", "c9.csv", "s"]
+
+
+# -- the lock itself, and every writer takes it -----------------------------------------------
+@pytest.mark.fault("lock_stale_file")
+def test_lock_file_left_by_kill9_is_taken_over(cli, map_copy, tmp_path, new_refs):
+    """A writer killed with -9 leaves PARENT/.MAP.lock behind, unlocked (the kernel released
+    the flock): the next writer takes it over and deletes it when done."""
+    folder, csv, _ = new_refs
+    (tmp_path / ".map.lock").write_text("pid 999999, map add, since yesterday\n")
+    rc, out, _ = cli("map", "add", map_copy, "--images", folder, "--coords", csv)
+    assert rc == 0 and "20 references added" in out
+    assert not (tmp_path / ".map.lock").exists()
+
+
+@pytest.mark.fault("lock_wait_env_bad")
+def test_lock_wait_setting_checked(cli, map_copy, tmp_path, monkeypatch):
+    (tmp_path / "ids.txt").write_text("x\n")
+    for bad in ("abc", "-1", "inf", "nan"):
+        monkeypatch.setenv("VLM_VPR_LOCK_WAIT_S", bad)
+        exit2(cli("map", "remove", map_copy, "--ids", tmp_path / "ids.txt"),
+              "VLM_VPR_LOCK_WAIT_S")
+
+
+@pytest.fixture
+def held(monkeypatch):
+    """Hold a target's writer lock (as another process would) and refuse at once."""
+    from vlm_vpr_ros.files.lock import WriterLock
+
+    monkeypatch.setenv("VLM_VPR_LOCK_WAIT_S", "0")
+    locks = []
+
+    def hold(target, what="another writer"):
+        locks.append(WriterLock(target, what).acquire())
+
+    yield hold
+    for lock in locks:
+        lock.release()
+
+
+@pytest.mark.fault("lock_every_writer")
+def test_every_map_writer_takes_the_lock(cli, map_copy, tmp_path, demo_data, held):
+    """build-map (images, descriptors, --bag), map add/remove/upgrade and calibrate on a map
+    whose lock is held: each is refused before writing anything."""
+    held(map_copy, "map add")
+    before = sha_tree(map_copy)
+    coords = _subset(tmp_path, demo_data, 4)
+    np.save(tmp_path / "d.npy", np.ones((4, 512), np.float32))
+    (tmp_path / "ids.txt").write_text("x\n")
+    (tmp_path / "r.csv").write_text("file,lat,lon,uncertainty_m,radius95_m\n")
+    for args in (
+            ("build-map", "--images", demo_data / "images", "--coords", coords, "--out",
+             map_copy, "--overwrite", *FAST),
+            ("build-map", "--descriptors", tmp_path / "d.npy", "--coords", coords, "--out",
+             map_copy, "--descriptor", "cosplace", "--overwrite"),
+            ("build-map", "--bag", tmp_path / "nobag", "--out", map_copy, "--overwrite"),
+            ("map", "remove", map_copy, "--ids", tmp_path / "ids.txt"),
+            ("map", "upgrade", map_copy, "--out", tmp_path / "v2"),
+            ("calibrate", "--map", map_copy, "--results", tmp_path / "r.csv",
+             "--ground-truth", coords)):
+        exit2(cli(*args), "is being written by another process", "map add")
+    assert sha_tree(map_copy) == before and not (tmp_path / "v2").exists()
+
+
+@pytest.mark.fault("lock_other_outputs")
+def test_describe_and_bag_make_take_the_lock(cli, tmp_path, demo_data, held):
+    coords = _subset(tmp_path, demo_data, 3)
+    held(tmp_path / "s", "describe")
+    exit2(_describe(cli, demo_data / "images", coords, tmp_path / "s"),
+          "being written by another process", "describe")
+    held(tmp_path / "bag", "bag make")
+    exit2(cli("bag", "make", "--images", demo_data / "images", "--coords", coords, "--out",
+              tmp_path / "bag"), "being written by another process", "bag make")
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".bag.lock", ".s.lock", "c.csv"]
+
+
+@pytest.mark.fault("out_upgrade_into_map")
+def test_upgrade_out_inside_the_source(cli, map_copy):
+    before = sha_tree(map_copy)
+    exit2(cli("map", "upgrade", map_copy, "--out", map_copy / "v2"),
+          "never written into inputs")
+    assert sha_tree(map_copy) == before
+
+
+@pytest.mark.fault("lock_symlinked_map")
+def test_edit_through_a_symlink_and_the_real_path(cli, map_copy, tmp_path, held):
+    """`map add maps/city` (a link to the real folder) and an edit of the real folder exclude
+    each other; a rebuild of the link's entry and an edit through the link too."""
+    (tmp_path / "maps").mkdir()
+    link = tmp_path / "maps" / "city"
+    link.symlink_to(map_copy)
+    (tmp_path / "ids.txt").write_text("x\n")
+    held(map_copy, "map add")  # an edit through the real path
+    exit2(cli("map", "remove", link, "--ids", tmp_path / "ids.txt"), "map add")
+    held(link, "a map build")  # a rebuild of maps/city
+    exit2(cli("map", "remove", link, "--ids", tmp_path / "ids.txt"), "a map build")
+
+
+@pytest.mark.fault("out_describe_resume_adopt")
+def test_describe_resumes_an_unfinished_folder_written_in_place(cli, demo_data, tmp_path,
+                                                                 monkeypatch):
+    """A shard folder left unfinished by a version that wrote in place is adopted and resumed
+    (finished shards are not recomputed), then swapped in."""
+    from vlm_vpr_ros.distributed import describe as describe_mod
+
+    coords = _subset(tmp_path, demo_data, 9)
+    out = tmp_path / "s"
+    real, calls = describe_mod._run, []
+
+    def stop_after_first(engine, store, ids, pending, *a, **k):
+        calls.append(len(pending))
+        if len(calls) == 1:  # write one shard, then "crash"
+            real(engine, store, ids, pending[:1], *a, **k)
+            raise KeyboardInterrupt
+        return real(engine, store, ids, pending, *a, **k)
+
+    monkeypatch.setattr(describe_mod, "_run", stop_after_first)
+    assert _describe(cli, demo_data / "images", coords, out)[0] == 130
+    staged = tmp_path / ".s.partial" / "s"
+    staged.rename(out)  # what an older version left: the unfinished job at --out itself
+    shutil.rmtree(tmp_path / ".s.partial")
+    rc, stdout, _ = _describe(cli, demo_data / "images", coords, out)
+    assert rc == 0 and "1 shards resumed" in stdout and calls == [3, 2]
+    assert json.loads((out / "describe.json").read_text())["described"] == 9

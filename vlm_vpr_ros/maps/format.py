@@ -18,6 +18,7 @@ existed have no ``sample``: their small files are still checked by sha256, the o
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import os
 import re
@@ -107,6 +108,8 @@ def check_structure(manifest: dict, mpath: Path) -> None:
         need(meta, f"files[{rel!r}]", dict, "an object {bytes, sha256}")
         need(meta.get("bytes"), f"files[{rel!r}].bytes", int, "an integer")
         need(meta.get("sha256"), f"files[{rel!r}].sha256", str, "a string")
+        if "sample" in meta:
+            need(meta["sample"], f"files[{rel!r}].sample", str, "a string")
     part = need(manifest["partition"], "partition", dict, "an object {method, params}")
     need(part.get("method"), "partition.method", str, "a string")
     need(manifest["n_references"], "n_references", int, "an integer")
@@ -303,9 +306,15 @@ def load_state(path: Path, manifest: dict, verify: bool) -> dict[str, np.ndarray
     rel = manifest.get("descriptor_state")
     if not rel:
         return {}
-    p = checked_file(path, manifest, rel, verify)
+    p = checked_file(path, manifest, rel, False)
     try:
-        with np.load(p, allow_pickle=False) as npz:
+        data = p.read_bytes()  # read whole anyway: its sha256 is checked at every open
+    except OSError as exc:
+        raise MapError(f"{path}: cannot read {rel}: {exc.strerror}") from None
+    if hashlib.sha256(data).hexdigest() != manifest["files"][rel].get("sha256"):
+        raise content_error(path, rel)
+    try:
+        with np.load(io.BytesIO(data), allow_pickle=False) as npz:
             return {k: npz[k] for k in npz.files}
     except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as exc:
         raise MapError(f"{path}: cannot read {rel}: {exc}") from exc

@@ -16,7 +16,7 @@ import numpy as np
 from vlm_vpr_ros import __version__
 from vlm_vpr_ros.errors import MapError, OutputError
 from vlm_vpr_ros.files.atomic import atomic_save_npy, atomic_write_index, atomic_write_json
-from vlm_vpr_ros.files.lock import WriterLock
+from vlm_vpr_ros.files.lock import WriterLock, lock_path
 from vlm_vpr_ros.maps import store
 from vlm_vpr_ros.maps.format import MANIFEST, file_entry
 from vlm_vpr_ros.maps.submap import Submap, submap_radius_km
@@ -29,14 +29,25 @@ def edit_lock(map_dir: Path, what: str = "a map edit") -> Iterator[None]:
     without ``--overwrite`` too). Waits a little, then MapError when another writer holds it."""
     if not (map_dir / MANIFEST).is_file():
         raise MapError(f"{map_dir} is not a map (no {MANIFEST})")
+    # the entry (what a rebuild swaps) and, when it is a symbolic link, the folder it names
+    # (what another edit through the real path writes into)
+    targets = [Path(map_dir)]
+    real = Path(os.path.realpath(map_dir))
+    if lock_path(real) != lock_path(map_dir):
+        targets.append(real)
+    held: list[WriterLock] = []
     try:
-        lock = WriterLock(map_dir, what, inside_ok=True).acquire()
+        for t in targets:
+            held.append(WriterLock(t, what, inside_ok=True).acquire())
     except OutputError as exc:
+        for lock in held:
+            lock.release()
         raise MapError(str(exc)) from None
     try:
         yield
     finally:
-        lock.release()
+        for lock in reversed(held):
+            lock.release()
 
 
 def _folder_id(path: Path) -> tuple[int, int]:
