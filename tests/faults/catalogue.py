@@ -181,7 +181,8 @@ CATALOGUE: dict[str, tuple[str, str, str]] = {
     "csv_utf16": ("csv", "a UTF-16 coordinates CSV", "exit 2: malformed CSV naming file:line"),
     "csv_crlf_bom_accepted": ("csv", "CRLF line ends, BOM, ` 39.5 `, `+8.9`, `-1e1`, `.5`",
                               "accepted"),
-    "csv_empty_number": ("csv", "an empty latitude", "exit 2 naming file:line"),
+    "csv_empty_number": ("csv", "an empty longitude in `bag make`'s coordinates CSV",
+                         "exit 2 naming file:line, no bag"),
     "cli_bag_numbers": ("config", "`bag make --rate` / `replay --rate --clock "
                                   "--wait-subscribers --domain-id` 0, -1, inf, nan, 1e9",
                         "exit 2 naming the option"),

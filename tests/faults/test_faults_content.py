@@ -11,7 +11,7 @@ import time
 import numpy as np
 import pytest
 
-from faults.conftest import exit2
+from faults.conftest import copy_refs, exit2
 
 N = 200  # references per submap: 400 KB flat index files (checked by sampled pages)
 PLACES = [(48.8566, 2.3522), (-33.8688, 151.2093)]  # Paris, Sydney: ~16,950 km apart
@@ -250,17 +250,10 @@ def test_map_add_under_an_open_map_is_not_a_content_change(map_copy, demo_data, 
 
     pipe = LocalizationPipeline.open(map_copy)
     pipe.map.submaps[0].opened()  # one open, the others not yet
-    src = (demo_data / "coords.csv").read_text().splitlines()[1:9]
-    folder = tmp_path / "new"
-    folder.mkdir()
-    rows = []
-    for k, line in enumerate(src):
-        f, lat, lon = line.split(",")[:3]
-        shutil.copy(demo_data / "images" / f, folder / f"new_{k}.jpg")
-        rows.append((f"new_{k}.jpg", float(lat), float(lon)))
+    rows = copy_refs(demo_data, tmp_path / "new", 8)
     time.sleep(0.05)
-    add_references(map_copy, folder, rows, progress=False)
-    rgb = load_image(demo_data / "images" / src[0].split(",")[0])
+    add_references(map_copy, tmp_path / "new", rows, progress=False)
+    rgb = load_image(tmp_path / "new" / rows[0][0])
     hyp = pipe.localize_image(rgb)
     assert np.isfinite(hyp.lat) and hyp.ref_id
     assert pipe.reloaded().map.n_references == 79

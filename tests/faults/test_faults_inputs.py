@@ -163,7 +163,7 @@ def test_nul_byte_after_64_kib(cli, tmp_path, demo_map, demo_data):
     assert "Traceback" not in cli.text and not (tmp_path / "r.csv.partial").exists()
 
 
-# -- numbers on the command line and in node parameters --------------------------------------------
+# -- numbers on the command line and in node parameters -------------------------------------
 @pytest.mark.fault("cli_prior_timeout")
 def test_prior_timeout_values(cli, tmp_path):
     for bad, shown in (("inf", "inf"), ("1e309", "inf"), ("-1", "-1.0"), ("nan", "nan"),
@@ -305,11 +305,14 @@ def test_crlf_and_bom_accepted(tmp_path):
 
 
 @pytest.mark.fault("csv_empty_number")
-def test_empty_coordinate(cli, tmp_path):
-    (tmp_path / "r.csv").write_text("file,lat,lon\na.jpg,39.5,8.9\n")
-    (tmp_path / "gt.csv").write_text("file,lat,lon\na.jpg,,8.9\n")
-    exit2(cli("evaluate", "--results", tmp_path / "r.csv", "--ground-truth",
-              tmp_path / "gt.csv"), "gt.csv:2", "not numbers")
+def test_empty_coordinate(cli, tmp_path, demo_data):
+    """An empty longitude in a coordinates CSV (a row cut short by a spreadsheet)."""
+    names = sorted(p.name for p in (demo_data / "images").iterdir())[:3]
+    rows = [f"{names[0]},45.1,7.6", f"{names[1]},45.2,", f"{names[2]},45.3,7.7"]
+    (tmp_path / "c.csv").write_text("file,lat,lon\n" + "\n".join(rows) + "\n")
+    exit2(cli("bag", "make", "--images", demo_data / "images", "--coords", tmp_path / "c.csv",
+              "--out", tmp_path / "b"), "c.csv:3", "not numbers")
+    assert not (tmp_path / "b").exists()
 
 
 @pytest.mark.fault("cli_bag_numbers")

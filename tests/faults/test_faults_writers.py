@@ -10,7 +10,7 @@ import threading
 import numpy as np
 import pytest
 
-from faults.conftest import exit2, sha_tree
+from faults.conftest import copy_refs, exit2, sha_tree
 
 FAST = ("--descriptor", "vlad_rootsift_fast", "--partition", "none")
 
@@ -25,14 +25,8 @@ def _subset(tmp_path, demo_data, n, name="c.csv"):
 @pytest.fixture
 def new_refs(tmp_path, demo_data):
     """20 references the demo map does not hold (copies of demo images under new names)."""
-    src = (demo_data / "coords.csv").read_text().splitlines()[1:21]
     folder = tmp_path / "new"
-    folder.mkdir()
-    rows = []
-    for k, line in enumerate(src):
-        f, lat, lon = line.split(",")[:3]
-        shutil.copy(demo_data / "images" / f, folder / f"new_{k}.jpg")
-        rows.append((f"new_{k}.jpg", float(lat) + 1e-4, float(lon)))
+    rows = [(f, a + 1e-4, b) for f, a, b in copy_refs(demo_data, folder, 20)]
     csv = tmp_path / "new.csv"
     csv.write_text("file,lat,lon\n" + "".join(f"{f},{a!r},{b!r}\n" for f, a, b in rows))
     return folder, csv, rows

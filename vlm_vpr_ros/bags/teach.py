@@ -292,7 +292,8 @@ def build_map_from_bag(bag_path: str | os.PathLike[str], out_dir: str | os.PathL
 
     out = Path(out_dir)
     out.parent.mkdir(parents=True, exist_ok=True)
-    with WriterLock(out, "build-map --bag"):  # the map's one writer lock (map add/remove, build-map take it too)
+    # the map's one writer lock (map add/remove and build-map take it too)
+    with WriterLock(out, "build-map --bag"):
         if out.exists() and not overwrite:
             raise MapError(f"{out} already exists; pass --overwrite to replace it or choose "
                            "another --out")
