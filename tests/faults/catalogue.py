@@ -148,7 +148,7 @@ CATALOGUE: dict[str, tuple[str, str, str]] = {
     "image_bomb_formats": ("image", "12000² TIFF / WebP / GIF / BMP headers in files < 1 KB",
                            "refused from the header (Pillow), never decoded"),
     "image_unknown_header": ("image", "bytes with no image header any reader knows",
-                             "refused 'not a supported image', never handed to OpenCV"),
+                             "refused 'not a decodable image', never handed to OpenCV"),
     "image_bomb_cli": ("image", "WebP / TIFF bombs as `localize` queries and `build-map` "
                                 "references", "flagged `image_error` rows / skipped 'too large'"),
     "image_bomb_node": ("node", "16383² WebP (~50 bytes) on `image/compressed`",

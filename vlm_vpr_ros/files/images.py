@@ -4,7 +4,7 @@ The pixel budget is checked *before* decoding, for every format: the header is r
 (``Image.open`` is lazy: it parses the header of JPEG, PNG, WebP, TIFF, GIF, BMP, PNM,
 JPEG 2000 ... and allocates no pixels), so a 10 KB WebP that says 16383x16383 is refused before
 OpenCV would allocate 800 MB for it. Data whose header neither Pillow nor the built-in PNG/JPEG
-reader understands is refused as "not a supported image" without being handed to the decoder.
+reader understands is refused ("not a decodable image") without being handed to the decoder.
 A file larger than :data:`MAX_FILE_BYTES` is refused before it is read."""
 
 from __future__ import annotations
@@ -72,6 +72,18 @@ def _header_size(data: bytes, what: str) -> tuple[int, int] | None:
     return None
 
 
+_pillow_quiet = False
+
+
+def _quiet_pillow(image_module) -> None:
+    """Pillow warns about images between 89M and 179M px when it opens them: our own budget
+    (:data:`MAX_PIXELS`) decides, so that one warning category is silenced (once)."""
+    global _pillow_quiet
+    if not _pillow_quiet:
+        warnings.filterwarnings("ignore", category=image_module.DecompressionBombWarning)
+        _pillow_quiet = True
+
+
 def header_size(data: bytes, what: str = "image") -> tuple[int, int] | None:
     """(width, height) from the image header without decoding any pixel: Pillow for every
     format it knows, the built-in PNG/JPEG reader when Pillow cannot identify the data; None
@@ -79,7 +91,7 @@ def header_size(data: bytes, what: str = "image") -> tuple[int, int] | None:
     decompression-bomb limit."""
     from PIL import Image, UnidentifiedImageError
 
-    warnings.simplefilter("ignore", Image.DecompressionBombWarning)  # we check the budget
+    _quiet_pillow(Image)
     try:
         with Image.open(io.BytesIO(data)) as im:  # lazy: header only, no pixel allocated
             w, h = im.size
@@ -103,8 +115,8 @@ def decode_image_bytes(data: bytes | bytearray | memoryview, what: str = "image"
         raise ImageDecodeError(f"{what}: empty data")
     size = header_size(raw, what)
     if size is None:
-        raise ImageDecodeError(f"{what}: not a supported image ({len(raw)} bytes; no JPEG, "
-                               "PNG, WebP, TIFF, GIF, BMP ... header)")
+        raise ImageDecodeError(f"{what}: not a decodable image ({len(raw)} bytes with no "
+                               "JPEG, PNG, WebP, TIFF, GIF, BMP ... header)")
     _check_size(size[0], size[1], what)
     buf = np.frombuffer(raw, dtype=np.uint8)
     img = cv2.imdecode(buf, cv2.IMREAD_COLOR)

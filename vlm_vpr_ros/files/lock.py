@@ -83,6 +83,7 @@ class WriterLock:
 
     def _open(self) -> IO[str]:
         try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)  # a new output's parent
             return open(self.path, "a+", encoding="utf-8")
         except OSError as exc:
             inside = self.target / ".edit.lock"
