@@ -183,6 +183,8 @@ CATALOGUE: dict[str, tuple[str, str, str]] = {
                               "accepted"),
     "csv_empty_number": ("csv", "an empty longitude in `bag make`'s coordinates CSV",
                          "exit 2 naming file:line, no bag"),
+    "queries_csv_header_only": ("csv", "`localize` with a queries CSV that has only a header",
+                                "exit 2 naming the file, no results file"),
     "cli_bag_numbers": ("config", "`bag make --rate` / `replay --rate --clock "
                                   "--wait-subscribers --domain-id` 0, -1, inf, nan, 1e9",
                         "exit 2 naming the option"),

@@ -315,6 +315,16 @@ def test_empty_coordinate(cli, tmp_path, demo_data):
     assert not (tmp_path / "b").exists()
 
 
+@pytest.mark.fault("queries_csv_header_only")
+def test_queries_csv_with_only_a_header(cli, tmp_path, demo_map, demo_data):
+    """A queries CSV with its header but no file name: nothing to localize is an error, not an
+    empty results file and exit 0."""
+    (tmp_path / "q.csv").write_text("file,lat,lon\n,,\n")
+    exit2(cli("localize", "--map", demo_map, "--images", demo_data / "images", "--queries",
+              tmp_path / "q.csv", "--out", tmp_path / "r.csv"), "q.csv", "no rows")
+    assert not (tmp_path / "r.csv").exists()
+
+
 @pytest.mark.fault("cli_bag_numbers")
 def test_bag_command_numbers(cli, tmp_path):
     for args, opt in ((("bag", "make", "--images", tmp_path, "--coords", tmp_path / "c.csv",

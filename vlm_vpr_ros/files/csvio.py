@@ -149,5 +149,9 @@ def write_csv_atomic(path: str | os.PathLike[str], fieldnames: list[str],
 
 
 def read_file_column(path: str | Path) -> list[str]:
-    """The ``file`` column of a queries CSV (other columns are ignored)."""
-    return [row["file"] for row in read_table(path, ("file",), "queries CSV") if row["file"]]
+    """The ``file`` column of a queries CSV (other columns are ignored); a CSV without a single
+    file name is a DataError (a run over nothing would "succeed" with an empty result)."""
+    files = [row["file"] for row in read_table(path, ("file",), "queries CSV") if row["file"]]
+    if not files:
+        raise DataError(f"{path}: no rows with a file name")
+    return files
