@@ -72,8 +72,7 @@ def test_missing_garbage_and_foreign_checkpoints_are_clear_errors(weights, tmp_p
 def test_a_disk_lightglue_map_end_to_end(weights, demo_data, tmp_path):
     """build-map with --local-features disk_lightglue stores float16 DISK features (with the
     checkpoint's sha256, never its path), and queries verify with LightGlue."""
-    import csv
-
+    from test_verification_maps import first_rows
     from vlm_vpr_ros.files.images import load_image
     from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
     from vlm_vpr_ros.maps.build_images import build_map
@@ -81,10 +80,7 @@ def test_a_disk_lightglue_map_end_to_end(weights, demo_data, tmp_path):
     from vlm_vpr_ros.maps.reference_map import ReferenceMap
 
     d, _, _ = weights
-    rows = list(csv.DictReader(open(demo_data / "coords.csv")))[:6]
-    coords = tmp_path / "c.csv"
-    coords.write_text("file,lat,lon\n" + "".join(f"{r['file']},{r['lat']},{r['lon']}\n"
-                                                 for r in rows))
+    rows, coords = first_rows(demo_data, 6, tmp_path / "c.csv")
     m = tmp_path / "map"
     build_map(demo_data / "images", coords, m, descriptor="vlad_rootsift_fast",
               descriptor_config={"max_side": 160, "n_words": 8, "pca_dim": 5}, clusters=2,

@@ -21,6 +21,14 @@ from vlm_vpr_ros.maps.features import FeatureStore
 from vlm_vpr_ros.maps.reference_map import ReferenceMap
 
 
+def first_rows(demo_data, n: int, path):
+    """The first ``n`` rows of the demo coordinates, and a coordinates CSV of them."""
+    rows = list(csv.DictReader(open(demo_data / "coords.csv")))[:n]
+    path.write_text("file,lat,lon\n" + "".join(f"{r['file']},{r['lat']},{r['lon']}\n"
+                                               for r in rows))
+    return rows, path
+
+
 def featureless_frames() -> dict[str, np.ndarray]:
     """What a robot camera sends when it sees nothing: lens cap, overexposure, fog, noise."""
     rng = np.random.default_rng(0)
@@ -142,10 +150,7 @@ def test_damaged_or_foreign_feature_store(demo_map, tmp_path, caplog):
 def test_map_without_features_verifies_from_images_but_claims_nothing(demo_data, tmp_path):
     from vlm_vpr_ros.maps.build_images import build_map
 
-    rows = list(csv.DictReader(open(demo_data / "coords.csv")))[:14]
-    coords = tmp_path / "c.csv"
-    coords.write_text("file,lat,lon\n" + "".join(f"{r['file']},{r['lat']},{r['lon']}\n"
-                                                 for r in rows))
+    rows, coords = first_rows(demo_data, 14, tmp_path / "c.csv")
     m = tmp_path / "map"
     build_map(demo_data / "images", coords, m, descriptor="vlad_rootsift_fast",
               descriptor_config={"max_side": 320}, clusters=2, progress=False,
