@@ -11,7 +11,7 @@ it (``map_reload``, a restart), not rclpy's bare "read-only".
 
 from __future__ import annotations
 
-import logging
+import math
 from typing import Any
 
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
@@ -23,7 +23,6 @@ from vlm_vpr_ros.runtime.params import (NESTED, NodeConfig, PARAMETER_SPECS, Par
                                         ROS_STANDARD, from_params, refusal_reason,
                                         type_conflicts)
 
-log = logging.getLogger(__name__)
 _ROS_TYPES = {"bool": ParameterType.PARAMETER_BOOL, "int": ParameterType.PARAMETER_INTEGER,
               "float": ParameterType.PARAMETER_DOUBLE, "str": ParameterType.PARAMETER_STRING}
 
@@ -47,6 +46,13 @@ def parameter_descriptor(spec: ParamSpec) -> ParameterDescriptor:
 def _structural(name: str) -> bool:
     spec = PARAMETER_SPECS.get(name)
     return (spec is not None and spec.read_only) or name.partition(".")[0] in NESTED
+
+
+def _differs(a: Any, b: Any) -> bool:
+    """``a != b``, with NaN equal to NaN (the unset datum)."""
+    if isinstance(a, float) and isinstance(b, float) and math.isnan(a) and math.isnan(b):
+        return False
+    return a != b
 
 
 def flat_values(cfg: NodeConfig) -> dict[str, Any]:
@@ -116,11 +122,13 @@ class _Parameters:
 
     def _apply_parameters(self, params: list[Parameter]) -> None:
         new = self._proposed(params)
-        if new is None or new == self.cfg:
+        if new is None:
+            return
+        changed = [n for n in PARAMETER_SPECS if _differs(getattr(self.cfg, n), getattr(new, n))]
+        if not changed:
             return
         old, self.cfg = self.cfg, new
-        changes = ", ".join(f"{n} {getattr(old, n)!r} -> {getattr(new, n)!r}"
-                            for n in PARAMETER_SPECS if getattr(old, n) != getattr(new, n))
+        changes = ", ".join(f"{n} {getattr(old, n)!r} -> {getattr(new, n)!r}" for n in changed)
         self._settings_changed()
         self.get_logger().info(f"parameters changed at runtime (next query): {changes}")
 

@@ -100,11 +100,11 @@ class _Wiring(_Parameters):
         # reentrant + a deep request queue: every caller of a burst waits for the shared
         # query on its own executor thread (node.py sizes the executor for it)
         reloc_group = ReentrantCallbackGroup()
-        self._services = [self.create_service(
+        self._own_services = [self.create_service(
             Trigger, name, functools.partial(self._on_relocalize, kind),
             qos_profile=QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE),
             callback_group=reloc_group) for name, kind in RELOCALIZE_SERVICES.items()]
-        self._services.append(self.create_service(
+        self._own_services.append(self.create_service(
             Trigger, "map_reload", self._on_map_reload,
             callback_group=MutuallyExclusiveCallbackGroup()))
         self._diag_timer = self.create_timer(cfg.diagnostics_period_s, self._publish_diagnostics,
@@ -121,9 +121,9 @@ class _Wiring(_Parameters):
         if getattr(self, "_diag_timer", None) is not None:
             self.destroy_timer(self._diag_timer)
             self._diag_timer = None
-        for srv in getattr(self, "_services", []):
+        for srv in getattr(self, "_own_services", []):
             self.destroy_service(srv)
-        self._services = []
+        self._own_services = []
         if self.outputs is not None:
             self.outputs.destroy_debug()
         if self._provider is not None:

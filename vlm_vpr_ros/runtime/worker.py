@@ -150,15 +150,16 @@ class QueryRuntime:
             return ticket
 
     def _join_inflight(self, kind: RelocalizeKind) -> RelocalizeTicket | None:
-        """The running query's ticket for a ``latest`` request it can answer (its frame is
-        fresh and the prior setting matches), so a caller arriving during a slow VLM call
-        shares that call instead of queueing another; None otherwise (caller holds the lock).
-        A ``next`` request never joins: the running query's frame predates it."""
+        """The running query's ticket for a ``latest`` request it can answer (its frame was
+        fresh when the query started and the prior setting matches), so a caller arriving
+        during a slow VLM call shares that call instead of queueing another; None otherwise
+        (caller holds the lock). A ``next`` request never joins: the running query's frame
+        predates it."""
         if self._inflight is None or kind.frame != "latest":
             return None
         frame, use_prior, served = self._inflight
         ticket = RelocalizeTicket(kind, self._seq)
-        if use_prior != kind.use_prior or not ticket.accepts(frame, self._clock(),
+        if use_prior != kind.use_prior or not ticket.accepts(frame, self._last_start,
                                                              self.config.max_frame_age_s):
             return None
         return served.setdefault(kind, ticket)
@@ -295,8 +296,8 @@ class QueryRuntime:
             frame, tickets = job
             use_prior = all(t.kind.use_prior for t in tickets)
             with self._cond:
+                self._last_start = self._clock()
                 self._inflight = (frame, use_prior, {t.kind: t for t in tickets})
-            self._last_start = self._clock()
             self.busy = True
             outcome = QueryOutcome(frame, "relocalize" if tickets else "continuous")
             try:
