@@ -199,3 +199,53 @@ def test_debug_image_for_every_processed_frame(stack, rgb, demo_data):
     assert fut.result().success and client.wait_for(lambda: processed() > n_proc, 10.0)
     time.sleep(0.5)
     assert len(debug) == n_debug
+
+
+def _layout_topics(layout: dict) -> dict[str, str]:
+    """panel id -> the topic it shows (the first topic field each panel kind uses)."""
+    out = {}
+    for pid, cfg in layout["configById"].items():
+        topic = (cfg.get("imageMode", {}).get("imageTopic") or cfg.get("followTopic")
+                 or cfg.get("topicToRender") or cfg.get("topicPath"))
+        assert topic, f"{pid} shows no topic"
+        out[pid] = topic.split(".")[0] if pid.startswith("RawMessages") else topic
+    return out
+
+
+def _panel_ids(tree) -> set[str]:
+    if isinstance(tree, str):
+        return {tree}
+    return _panel_ids(tree["first"]) | _panel_ids(tree["second"])
+
+
+def test_foxglove_layout_shows_the_nodes_topics(stack):
+    """The shipped layout (camera, map with the fix, debug image, diagnostics, candidates)
+    names the topics this node really has, with the launch file's default camera remap."""
+    import ast
+    import json
+    from pathlib import Path
+
+    launch = Path(__file__).resolve().parents[1] / "launch_scripts"
+    layout = json.loads((launch / "vlm_vpr_foxglove.json").read_text())
+    topics = _layout_topics(layout)
+    assert _panel_ids(layout["layout"]) == set(topics)  # every configured panel is placed
+    client, node = stack["client"], stack["node"]
+    published = {n for n, _ in client.node.get_publisher_names_and_types_by_node(
+        "vlm_vpr_node", "/")}
+    subscribed = {n for n, _ in client.node.get_subscriber_names_and_types_by_node(
+        "vlm_vpr_node", "/")}
+    tree = ast.parse((launch / "vlm_vpr.launch.py").read_text())
+    default_image = next(n.keywords[0].value.value for n in ast.walk(tree)
+                         if isinstance(n, ast.Call) and getattr(n.func, "id", "") ==
+                         "DeclareLaunchArgument" and n.args[0].value == "image")
+    for pid, topic in topics.items():
+        if pid == "Image!vprcamera":  # the camera: the node's 'image', remapped by the launch
+            assert topic == default_image and "/image" in subscribed
+        else:
+            assert topic in published, f"{pid}: {topic} not among {sorted(published)}"
+    assert {"/fix", "/diagnostics", f"{NODE}/debug_image/compressed",
+            f"{NODE}/candidates"} <= set(topics.values())
+    status = layout["configById"]["DiagnosticStatusPanel!vprstatus"]
+    diag = client.diags[-1][0].status[0]
+    assert status["selectedName"] == diag.name and status["selectedHardwareId"] == \
+        diag.hardware_id
