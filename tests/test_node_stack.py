@@ -172,7 +172,7 @@ def test_runtime_threshold_changes_the_next_fix_and_structural_is_refused(stack)
 
 
 def test_debug_image_for_every_processed_frame(stack, rgb, demo_data):
-    client, tick, node = stack["client"], stack["tick"], stack["node"]
+    client, tick = stack["client"], stack["tick"]
     debug, candidates = stack["debug"], stack["candidates"]
 
     def processed():
@@ -229,7 +229,7 @@ def test_foxglove_layout_shows_the_nodes_topics(stack):
     layout = json.loads((launch / "vlm_vpr_foxglove.json").read_text())
     topics = _layout_topics(layout)
     assert _panel_ids(layout["layout"]) == set(topics)  # every configured panel is placed
-    client, node = stack["client"], stack["node"]
+    client = stack["client"]
     published = {n for n, _ in client.node.get_publisher_names_and_types_by_node(
         "vlm_vpr_node", "/")}
     subscribed = {n for n, _ in client.node.get_subscriber_names_and_types_by_node(

@@ -141,5 +141,5 @@ def caption(hyp: Any, status: str, sigma_m: float, error: str = "") -> list[str]
     prior = (f"prior {hyp.prior.source} ({hyp.prior.lat:.4f}, {hyp.prior.lon:.4f})"
              if hyp.prior is not None else "no prior: global retrieval")
     flags = f" FLAGGED [{'|'.join(hyp.flags)}]" if hyp.flagged else ""
-    return [f"{status} sigma {sigma_m:.0f} m  ref {hyp.ref_id} (submap {hyp.submap}){weight}"[:110],
-            f"{prior}, {len(hyp.candidates)} candidates{flags}"[:110]]
+    first = f"{status} sigma {sigma_m:.0f} m  ref {hyp.ref_id} (submap {hyp.submap}){weight}"
+    return [first[:110], f"{prior}, {len(hyp.candidates)} candidates{flags}"[:110]]
