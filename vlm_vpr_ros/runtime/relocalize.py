@@ -12,12 +12,9 @@ from __future__ import annotations
 import threading
 import time
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import Any
 
 from vlm_vpr_ros.errors import ConfigError
-
-if TYPE_CHECKING:  # types only: worker.py imports this module
-    from vlm_vpr_ros.runtime.worker import Frame, QueryOutcome
 
 FRAME_POLICIES = ("latest", "next")
 
@@ -53,28 +50,30 @@ class RelocalizeTicket:
         self.after_seq = after_seq  # frames numbered above this arrived after the request
         self.requested = time.monotonic()
         self._done = threading.Event()
-        self.outcome: QueryOutcome | None = None
+        self.outcome: Any = None  # the worker's QueryOutcome
 
-    def accepts(self, frame: Frame | None, now: float, max_age_s: float) -> bool:
-        """Whether ``frame`` may answer this request at time ``now`` (the runtime's clock)."""
+    def accepts(self, frame: Any, now: float, max_age_s: float) -> bool:
+        """Whether ``frame`` (the worker's Frame, or None) may answer this request at time
+        ``now`` (the runtime's clock)."""
         if frame is None:
             return False
         if self.kind.frame == "next":
             return frame.seq > self.after_seq
         return now - frame.received <= max_age_s
 
-    def finish(self, outcome: QueryOutcome | None) -> None:
+    def finish(self, outcome: Any) -> None:
         self.outcome = outcome
         self._done.set()
 
-    def wait(self, timeout_s: float) -> QueryOutcome | None:
+    def wait(self, timeout_s: float) -> Any:
         self._done.wait(max(0.0, timeout_s))
         return self.outcome
 
 
-def outcome_summary(outcome: QueryOutcome | None, waited_s: float,
+def outcome_summary(outcome: Any, waited_s: float,
                     fix_topic: str = "fix") -> tuple[bool, str]:
-    """(success, human-readable sentence) answering a relocalize request."""
+    """(success, human-readable sentence) answering a relocalize request (``outcome``: the
+    worker's QueryOutcome, None when none came in time)."""
     if outcome is None:
         return False, (f"relocalization scheduled, no result within {waited_s:.1f} s (waiting "
                        f"for a frame or for the prior); the fix will be published on "
