@@ -170,6 +170,7 @@ def test_lifecycle_node_through_its_services(demo_map, tmp_path, rgb):
         assert len(client.fixes) == n_fix and len(client.diags) == n_diag  # silent
 
         assert change(Transition.TRANSITION_ACTIVATE), node.log()
+        assert client.wait_subscribed(20.0), node.log()  # the new subscription is matched
         assert client.wait_for(lambda: len(client.fixes) > n_fix, 30.0, tick=tick,
                                period_s=0.1), node.log()
         assert node.log().count("map loaded") == 1  # deactivate kept the map
