@@ -56,6 +56,8 @@ class Hypothesis:
             "prior_lon": "" if p is None else f"{p.lon:.6f}",
             "prior_source": (p.source if p else (pr.source if pr else "none")),
             "prior_reason": "" if pr is None else pr.reason,
+            # how a VLM answer was read: structured, text, text_fallback ("" for no answer)
+            "prior_parse": "" if pr is None else str(pr.extra.get("parse_path") or ""),
             "submap": self.submap,
             "ref_id": self.ref_id,
             "uncertainty_m": f"{self.uncertainty_m:.1f}",

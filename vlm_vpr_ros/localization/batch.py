@@ -25,9 +25,12 @@ T = TypeVar("T")
 R = TypeVar("R")
 
 RESULT_FIELDS = ["file", "lat", "lon", "prior_lat", "prior_lon", "prior_source", "prior_reason",
-                 "submap", "ref_id", "uncertainty_m", "radius95_m", "confidence", "fusion",
-                 "n_candidates", "flags",
+                 "prior_parse", "submap", "ref_id", "uncertainty_m", "radius95_m", "confidence",
+                 "fusion", "n_candidates", "flags",
                  "descriptor_ms", "retrieval_ms", "rerank_ms", "prior_latency_s"]
+
+#: columns added after results files were first written: empty in older files (resume)
+ADDED_FIELDS = ("prior_parse",)
 
 
 def started_ahead(items: Iterable[T], start: Callable[[T], R],
@@ -113,6 +116,8 @@ def read_done_rows(path: Path) -> list[dict]:
         text = text[:text.rfind("\n") + 1]
     rows = []
     for row in csv.DictReader(io.StringIO(text, newline="")):
+        for k in ADDED_FIELDS:  # a file written before the column existed
+            row.setdefault(k, "")
         if any(row.get(k) is None for k in RESULT_FIELDS) or not row.get("file"):
             continue
         if "error" in (row.get("flags") or "").split("|"):

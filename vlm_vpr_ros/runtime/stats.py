@@ -86,6 +86,7 @@ class RuntimeStats:
                 "prior_source": hyp.prior.source if hyp.prior else (pr.source if pr else "none"),
                 "prior_ok": bool(pr and pr.ok),
                 "prior_reason": (pr.reason if pr else "") or ("ok" if pr and pr.ok else ""),
+                "prior_parse": str(pr.extra.get("parse_path") or "") if pr else "",
                 "prior_latency_s": pr.latency_s if pr else 0.0,
                 **{k: round(v, 2) for k, v in timings_ms.items()},
                 "at": time.monotonic(),
