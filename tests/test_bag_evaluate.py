@@ -14,7 +14,7 @@ from vlm_vpr_ros.bags.evaluate import BagEvalConfig, evaluate_bag
 from vlm_vpr_ros.bags.make import make_bag
 from vlm_vpr_ros.bags.messages import IMAGE, NAVSATFIX, image_msg, navsatfix_msg
 from vlm_vpr_ros.bags.reader import deserialize, open_bag
-from vlm_vpr_ros.bags.writer import Rosbag2McapWriter
+from vlm_vpr_ros.bags.writer import BagWriter, bag_files
 from vlm_vpr_ros.errors import BagError
 from vlm_vpr_ros.priors import create_prior_provider
 from msg_adapters.navsat import K68, K95
@@ -95,7 +95,7 @@ def test_bag_equals_localize_on_files(cbag, pipe, demo_data, queries, tmp_path):
 
 def _custom_bag(path: Path, frames: list[tuple[str, np.ndarray]], gt_offset_ns: int = 0,
                 demo_coords: list | None = None) -> Path:
-    with Rosbag2McapWriter(path) as bag:
+    with BagWriter(path) as bag:
         bag.add_topic("/cam/image_raw", IMAGE)
         bag.add_topic("/fix", NAVSATFIX)
         for i, (enc, rgb) in enumerate(frames):
@@ -158,7 +158,7 @@ def test_truncated_bag_partial_results(pipe, demo_data, tmp_path):
     (tmp_path / "c.csv").write_text("\n".join(lines) + "\n")
     raw = make_bag(demo_data / "images", tmp_path / "c.csv", tmp_path / "raw", rate_hz=2.0,
                    start_time_ns=T0, progress=False)["bag"]  # 1 MB frames: a chunk each
-    data = (Path(raw) / "raw_0.mcap").read_bytes()
+    data = bag_files(raw)[0].read_bytes()
     (tmp_path / "cut.mcap").write_bytes(data[:int(len(data) * 0.6)])
     res = evaluate_bag(open_bag(tmp_path / "cut.mcap"), pipe, create_prior_provider("none"),
                        tmp_path / "ev", progress=False)

@@ -207,9 +207,9 @@ def _write_estimates(path: Path, items: list[tuple]) -> Path:
     from msg_adapters.navsat import navsat_fix
 
     from vlm_vpr_ros.bags.messages import NAVSATFIX, navsatfix_msg
-    from vlm_vpr_ros.bags.writer import Rosbag2McapWriter
+    from vlm_vpr_ros.bags.writer import BagWriter
 
-    with Rosbag2McapWriter(path, overwrite=True) as bag:
+    with BagWriter(path, overwrite=True) as bag:
         for topic in (EST_TOPIC, PRIOR_TOPIC, GT_TOPIC):
             bag.add_topic(topic, NAVSATFIX)
         for t, hyp, truth in items:

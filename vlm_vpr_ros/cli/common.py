@@ -45,7 +45,8 @@ def add_localizer_args(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--no-submap", action="store_true",
                    help="search the whole map even with a prior (ablation)")
     g.add_argument("--no-rerank", action="store_true",
-                   help="ignore the prior when ranking candidates (ablation)")
+                   help="ignore the prior when ranking candidates (ablation; posterior: no "
+                        "prior term, paper: no re-rank)")
     g.add_argument("--n-submaps", type=int, default=1, metavar="N",
                    help="paper fusion: search the N submaps nearest to the prior (default 1)")
 

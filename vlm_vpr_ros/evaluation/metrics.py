@@ -21,29 +21,52 @@ def errors_km(est: Sequence[tuple[float, float] | None],
     return out
 
 
-def summarize(errs: Iterable[float | None]) -> dict:
-    """``{"n", "accuracy": {"1km", ...}, "median_km"}`` — the JSON of ``vlm-vpr evaluate``."""
+def summarize(errs: Iterable[float | None],
+              thresholds: Sequence[float] = THRESHOLDS_KM) -> dict:
+    """``{"n", "accuracy": {"1km", ...}, "median_km"}`` — the JSON of ``vlm-vpr evaluate``
+    (accuracy keys ``f"{t:g}km"`` for each of ``thresholds``, in km)."""
     errs = list(errs)
     med = median_km(errs)
     return {
         "n": len(errs),
-        "accuracy": {k: round(v, 2) for k, v in accuracy_table(errs).items()},
+        "accuracy": {k: round(v, 2) for k, v in accuracy_table(errs, thresholds).items()},
         "median_km": None if med is None else round(med, 3),
     }
 
 
-def format_table(rows: dict[str, dict], title: str = "") -> str:
-    """Plain-text table: one line per named summary (as returned by :func:`summarize`)."""
-    keys = [f"{t:g}km" for t in THRESHOLDS_KM]
-    head = f"{'':<36}{'n':>6}" + "".join(f"{k:>9}" for k in keys) + f"{'median km':>12}"
-    lines = [title] if title else []
-    lines += [head, "-" * len(head)]
+def threshold_label(key: str) -> str:
+    """An accuracy key as a column label: ``"25km"`` stays, ``"0.025km"`` → ``"25m"``."""
+    km = float(key.removesuffix("km"))
+    return f"{km * 1000:g}m" if km < 1 else key
+
+
+def table_cells(rows: dict[str, dict]) -> tuple[list[str], list[list[str]]]:
+    """Header and rows (strings) of an accuracy table: one row per named summary (as returned
+    by :func:`summarize`); the columns are the first row's accuracy keys. The printed tables
+    (:func:`format_table`) and the generated docs tables (the demo's JSON) both come from here."""
+    first = next(iter(rows.values()), None)
+    keys = list(first["accuracy"]) if first else [f"{t:g}km" for t in THRESHOLDS_KM]
+    head = ["", "n", *(threshold_label(k) for k in keys), "median km"]
+    body = []
     for name, s in rows.items():
         med = s.get("median_km")
-        lines.append(f"{name:<36}{s['n']:>6}"
-                     + "".join(f"{s['accuracy'][k]:>8.2f}%" for k in keys)
-                     + f"{'-' if med is None else f'{med:.1f}':>12}")
-    return "\n".join(lines)
+        body.append([name, str(s["n"]), *(f"{s['accuracy'][k]:.2f}%" for k in keys),
+                     "-" if med is None else f"{med:.1f}"])
+    return head, body
+
+
+def format_table(rows: dict[str, dict], title: str = "") -> str:
+    """Plain-text table of :func:`table_cells`."""
+    head, body = table_cells(rows)
+    widths = [36, 6] + [9] * (len(head) - 3) + [12]
+
+    def line(cells: list[str]) -> str:
+        return f"{cells[0]:<{widths[0]}}" + "".join(f"{c:>{w}}"
+                                                    for c, w in zip(cells[1:], widths[1:]))
+
+    top = line(head)
+    return "\n".join(([title] if title else []) + [top, "-" * len(top)]
+                     + [line(r) for r in body])
 
 
 def read_ground_truth(path) -> dict[str, tuple[float, float]]:
@@ -79,8 +102,10 @@ def coverage_pct(errs: Sequence[float | None], radii_m: Sequence[float | None]) 
     return 100.0 * hits / len(errs) if errs else 0.0
 
 
-def evaluate_results_csv(results_csv, ground_truth_csv) -> tuple[dict, dict]:
-    """Summary (JSON shape of ``vlm-vpr evaluate``) of a results CSV, plus extra statistics."""
+def evaluate_results_csv(results_csv, ground_truth_csv,
+                         thresholds: Sequence[float] = THRESHOLDS_KM) -> tuple[dict, dict]:
+    """Summary (JSON shape of ``vlm-vpr evaluate``) of a results CSV, plus extra statistics
+    (``errors_km``: the per-row errors, None for a row without an estimate)."""
     import os
 
     from vlm_vpr_ros.files.csvio import read_table
@@ -104,5 +129,5 @@ def evaluate_results_csv(results_csv, ground_truth_csv) -> tuple[dict, dict]:
     extra = {"coverage_pct": coverage_pct(errs, sigma),
              "coverage95_pct": (coverage_pct(errs, sigma95)
                                 if any(s is not None for s in sigma95) else None),
-             "flagged": flagged, "missing_gt": missing}
-    return summarize(errs), extra
+             "flagged": flagged, "missing_gt": missing, "errors_km": errs}
+    return summarize(errs, thresholds), extra

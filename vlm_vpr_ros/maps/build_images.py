@@ -110,7 +110,7 @@ def build_map(images_dir: str | Path, coords_csv: str | Path, out_dir: str | Pat
               progress: bool = True, seed: int = 0, index: str = "flat",
               ram_budget_mb: float | None = None, max_submap_size: int | None = None,
               rerank_factor: int = DEFAULT_RERANK_FACTOR, engine: Any = None) -> ReferenceMap:
-    """Build (or resume building) a map folder; see the README "Map format" section.
+    """Build (or resume building) a map folder; the format is in docs/maps.md ("Map format").
     ``engine``: describe (and fit), partition and index elsewhere, e.g. on Ray
     (``vlm_vpr_ros.distributed.build``); by default everything runs in this process.
 
