@@ -14,6 +14,19 @@ from vlm_vpr_ros.errors import BagError, ConfigError, ImageDecodeError
 log = logging.getLogger(__name__)
 
 _PASS_THROUGH = {".jpg": "jpeg", ".jpeg": "jpeg", ".png": "png"}
+#: builtin_interfaces/Time.sec is an int32: the last stamp a message header can carry
+MAX_STAMP_NS = (2 ** 31 - 1) * 1_000_000_000 + 999_999_999
+
+
+def check_stamps(start_ns: int, n_frames: int, period_ns: int) -> None:
+    """ConfigError unless every frame's stamp fits ``header.stamp`` (sec int32 >= 0): a start
+    time that would wrap the seconds is refused before anything is written."""
+    last = start_ns + max(0, n_frames - 1) * period_ns
+    if start_ns < 0 or last > MAX_STAMP_NS:
+        raise ConfigError(
+            f"--start-time {start_ns / 1e9:.9f} s: the frames' stamps (up to {last / 1e9:.3f} s)"
+            f" do not fit a ROS header stamp (sec is an int32: 0 .. {2 ** 31 - 1}, i.e. until "
+            "2038-01-19 03:14:07 UTC); choose an earlier start time")
 
 
 def image_topic_name(prefix: str, compressed: bool) -> str:
@@ -39,6 +52,8 @@ def make_bag(images_dir: str | os.PathLike[str], coords_csv: str | os.PathLike[s
         raise ConfigError(f"--rate must be a positive frequency in Hz, got {rate_hz}")
     images_dir = Path(images_dir)
     rows = read_coords_csv(coords_csv)
+    if start_time_ns is not None:
+        check_stamps(int(start_time_ns), len(rows), int(round(1e9 / rate_hz)))
     check_not_inside(out, [images_dir, coords_csv], allow_out_inside=True)
     with StagedOutput(out, "bag", overwrite) as stage:
         info = _make(images_dir, rows, coords_csv, stage.path, rate_hz, compressed,

@@ -13,6 +13,7 @@ import argparse
 import logging
 import math
 import os
+from pathlib import Path
 
 from vlm_vpr_ros.errors import DataError
 
@@ -72,6 +73,17 @@ def calibration_ratios(results_csv, ground_truth_csv) -> dict[str, dict[str, lis
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
+    """Writes calibration.json and the manifest of the map: under the map's writer lock (a
+    ``map add`` between reading the manifest and writing it back would otherwise be lost)."""
+    import contextlib
+
+    from vlm_vpr_ros.maps.transaction import edit_lock
+
+    with (contextlib.nullcontext() if args.dry_run else edit_lock(Path(args.map), "calibrate")):
+        return _calibrate(args)
+
+
+def _calibrate(args: argparse.Namespace) -> int:
     from vlm_vpr_ros.localization.fusion.calibration import (CALIBRATION_FORMAT,
                                                              CALIBRATION_VERSION, conformal_factor,
                                                              load_calibration, save_calibration)

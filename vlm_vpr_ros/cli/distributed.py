@@ -60,7 +60,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--descriptor", default="vlad_rootsift", metavar="NAME",
                    help="descriptor preset (see 'vlm-vpr descriptors'; default vlad_rootsift)")
     p.add_argument("--overwrite", action="store_true",
-                   help="replace a shard folder that holds other descriptors")
+                   help="replace a shard folder written by 'vlm-vpr describe' that holds "
+                        "other descriptors (kept until the new one is complete; any other "
+                        "folder is never replaced)")
     add_descriptor_option_args(p)
     add_engine_args(p)
     p.set_defaults(func=cmd_describe)
@@ -75,7 +77,7 @@ def cmd_describe(args: argparse.Namespace) -> int:
     res = describe_to_shards(args.images, [r[0] for r in rows], args.out,
                              descriptor=args.descriptor,
                              descriptor_config=descriptor_options(args), options=opts,
-                             overwrite=args.overwrite)
+                             overwrite=args.overwrite, inputs=[args.coords])
     print(res.summary())
     return 0
 

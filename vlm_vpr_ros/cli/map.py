@@ -90,7 +90,15 @@ def cmd_map_add(args: argparse.Namespace) -> int:
         return 0
     from vlm_vpr_ros.bags.teach import extract_references
 
-    stage = Path(args.map) / f".add{os.getpid()}"
+    # the frames are extracted beside the map (not into it: a rebuild that swaps the map
+    # folder meanwhile would take them away); inside only when the parent is read-only
+    target = Path(args.map)
+    stage = target.parent / f".{target.name}.add{os.getpid()}"
+    try:
+        shutil.rmtree(stage, ignore_errors=True)
+        stage.mkdir(parents=True)
+    except PermissionError:
+        stage = target / f".add{os.getpid()}"
     shutil.rmtree(stage, ignore_errors=True)
     try:
         teach = extract_references(args.bag, stage, teach_config(args))
@@ -198,19 +206,24 @@ def cmd_verify(args: argparse.Namespace) -> int:
 
 def cmd_upgrade(args: argparse.Namespace) -> int:
     from vlm_vpr_ros.errors import MapError
-    from vlm_vpr_ros.maps.reference_map import ReferenceMap
+    from vlm_vpr_ros.files.lock import WriterLock
+    from vlm_vpr_ros.files.outputs import StagedOutput, check_not_inside
     from vlm_vpr_ros.maps.build_descriptors import convert_map
+    from vlm_vpr_ros.maps.reference_map import ReferenceMap
 
     out = Path(args.out)
     if out.exists():
         raise MapError(f"{out} exists; upgrade writes a new folder beside the old map")
-    old = ReferenceMap.load(args.map, verify=True)
-    kind = args.index or old.manifest.get("index", "flat")
-    new = convert_map(old, "pq" if kind == "auto" else kind,
-                      args.rerank_factor or old.rerank_factor)
-    tmp = out.with_name(f".{out.name}.tmp")
-    new.save(tmp)
-    tmp.rename(out)
+    check_not_inside(out, [args.map])
+    # the source's writer lock: no edit or rebuild swaps it while it is read
+    with WriterLock(args.map, "map upgrade (reading it)", inside_ok=True):
+        old = ReferenceMap.load(args.map, verify=True)
+        kind = args.index or old.manifest.get("index", "flat")
+        new = convert_map(old, "pq" if kind == "auto" else kind,
+                          args.rerank_factor or old.rerank_factor)
+        with StagedOutput(out, "map") as stage:  # the new map's lock, staged then swapped in
+            new.save(stage.path)
+            stage.commit(validate=ReferenceMap.load)
     print(f"map {args.out}: v2, {new.n_references} references, {len(new.submaps)} submaps, "
           f"index {kind} (from {args.map}, format v{old.manifest['version']})")
     return 0

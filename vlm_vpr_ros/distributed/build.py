@@ -40,7 +40,7 @@ class RayMapEngine:
         # the work folder is the build's own: a shard folder of other settings is replaced
         self.result = describe_to_shards(images_dir, ids, shards, descriptor=desc,
                                          options=self.opts, overwrite=True,
-                                         engine=self.session.describer(source))
+                                         engine=self.session.describer(source), staged=False)
         if self.result.described == 0:
             return np.zeros((len(ids), desc.dim), np.float32), np.zeros(len(ids), bool)
         return read_shards(shards, ids)

@@ -86,11 +86,12 @@ def read_ground_truth(path) -> dict[str, tuple[float, float]]:
 
 
 def _float(v) -> float | None:
-    try:
-        x = float(v)
-    except (TypeError, ValueError):
-        return None
-    return x if math.isfinite(x) else None
+    """A finite number of a results CSV, or None (empty, not a plain number: strict, see
+    :func:`vlm_vpr_ros.files.csvio.strict_float`)."""
+    from vlm_vpr_ros.files.csvio import strict_float
+
+    x = strict_float(v)
+    return x if x is not None and math.isfinite(x) else None
 
 
 def coverage_pct(errs: Sequence[float | None], radii_m: Sequence[float | None]) -> float:

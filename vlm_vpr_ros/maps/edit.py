@@ -11,7 +11,8 @@ manifest is replaced last with ``os.replace`` (the commit point). The files it n
 stay one more generation (manifest ``retired``) so that a reader of the previous manifest —
 a node that opened submaps lazily — keeps a complete map until it reloads; the next edit
 deletes them. An edit that fails before the commit deletes what it wrote and leaves the old
-map as it was. One edit at a time (``MAP/.edit.lock``).
+map as it was. One writer at a time: the map's writer lock (``PARENT/.MAP.lock``,
+:mod:`vlm_vpr_ros.files.lock`), shared with ``build-map``.
 
 Maps may hold their reference images (teach maps built from a bag,
 :mod:`vlm_vpr_ros.maps.map_images`): adding to such a map copies the new images in; removing
@@ -221,7 +222,7 @@ def add_references(map_dir: str | os.PathLike[str], images_dir: str | os.PathLik
     path, root = Path(map_dir), Path(images_dir)
     if not rows:
         raise DataError("nothing to add: no references given")
-    with edit_lock(path):
+    with edit_lock(path, "map add"):
         ref_map = ReferenceMap.load(path, verify=True)
         built = ref_map.descriptor_identity.get("config", {})
         other = {k: v for k, v in dict(descriptor_config or {}).items()
@@ -311,7 +312,7 @@ def remove_references(map_dir: str | os.PathLike[str], ids: Iterable[str],
     """Remove references by id; unknown ids are an error (nothing is changed)."""
     path = Path(map_dir)
     drop = set(ids)
-    with edit_lock(path):
+    with edit_lock(path, "map remove"):
         ref_map = ReferenceMap.load(path, verify=True)
         unknown = sorted(drop - set(ref_map.all_ids()))
         if unknown:

@@ -65,8 +65,8 @@ class NodeConfig:
     map_dir: str = _p("", "map folder built by `vlm-vpr build-map` (required)")
     descriptor: str = _p("", "descriptor name; must match the map's ('' = the map's own)")
     verify_map: bool = _p(False, "check the sha256 of every map file at start and on "
-                                 "map_reload (slow for large maps; sizes and the manifest are "
-                                 "always checked)")
+                                 "map_reload (slow for large maps; the manifest, sizes and "
+                                 "content fingerprints are always checked)")
     prior_provider: str = _p("none", "prior source: none, fixed, recorded, answers, openai; "
                                      "settings under prior.*")
     prior_timeout_s: float = _p(30.0, "longest wait for a prior; then a flagged global fix",

@@ -50,14 +50,21 @@ MAX_LOO_REFERENCES = 200_000  # above this, only the visual scale is computed (f
 DUPLICATE_SQ = 1e-4
 
 
+#: least conformal factor: when most leave-one-out answers are exact (several references at
+#: one position, e.g. the views of one panorama), the quantile is 0; radii are floored anyway
+#: (``uncertainty_floor_m``), and a factor of 0 would make the calibration file invalid
+MIN_FACTOR = 1e-3
+
+
 def conformal_factor(ratios: np.ndarray, q: float) -> float:
-    """Finite-sample split-conformal quantile: the ceil((n+1) q)-th smallest ratio."""
+    """Finite-sample split-conformal quantile: the ceil((n+1) q)-th smallest ratio (at least
+    :data:`MIN_FACTOR`)."""
     r = np.sort(np.asarray(ratios, dtype=np.float64))
     n = len(r)
     if n == 0:
         return 1.0
     k = min(n, int(math.ceil((n + 1) * q)))
-    return float(r[k - 1])
+    return max(float(r[k - 1]), MIN_FACTOR)
 
 
 def _sample_prior(lat: float, lon: float, model: ErrorModel,
