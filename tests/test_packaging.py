@@ -58,6 +58,7 @@ ROSDEP_KEYS = {"numpy": "python3-numpy", "cv2": "python3-opencv", "yaml": "pytho
                "tqdm": "python3-tqdm", "faiss": "python3-faiss", "torch": "python3-torch",
                "PIL": "python3-pil",
                "rosbags": "python3-rosbags-pip", "mcap": "mcap-ros2-support",
+               "pyproj": "python3-pyproj",
                "reverse_geocoder": None,
                # optional (describe / build-map --engine ray), pip only: requirements.txt
                "ray": None, "pyarrow": None,

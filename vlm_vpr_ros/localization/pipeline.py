@@ -6,7 +6,7 @@ from __future__ import annotations
 import logging
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Mapping
 
 import numpy as np
@@ -124,6 +124,15 @@ class LocalizationPipeline:
                                    self.status_policy)
         new.verify = verify
         return new
+
+    def tune(self, status: StatusPolicy | None = None, verify_top_k: int | None = None) -> None:
+        """Runtime tuning (the node's writable parameters), for the next query: the status
+        policy, and how many candidates are verified (a new verifier on the same map)."""
+        if status is not None:
+            self.status_policy = status
+        v = self.verifier
+        if verify_top_k is not None and v is not None and v.config.top_k != verify_top_k:
+            self.verifier = Verifier(self.map, replace(v.config, top_k=int(verify_top_k)))
 
     def describe(self, image: np.ndarray) -> np.ndarray:
         return self.descriptor.describe_one(image)
