@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import random
 import statistics
 import sys
 import tempfile
@@ -81,10 +82,11 @@ def timed_paths(map_dir: Path, images: list[np.ndarray], repeat: int) -> dict[st
     paths = {"retrieval only": lambda im: off.localizer.localize(off.describe(im), None),
              "verify_top_k 0": off.localize_image, "verify_top_k 20": on.localize_image}
     names = list(paths)
-    for r in range(repeat):
-        for i, im in enumerate(images):
-            k = (i + r) % 3  # rotate the order: no path always runs first (caches, load)
-            for name in names[k:] + names[:k]:
+    rng = random.Random(0)
+    for _ in range(repeat):
+        for im in images:
+            rng.shuffle(names)  # a random order per query: no path always follows another
+            for name in names:
                 t0 = time.perf_counter()
                 h = paths[name](im)
                 t[name].append((time.perf_counter() - t0) * 1e3)
