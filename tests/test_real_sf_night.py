@@ -260,8 +260,6 @@ def test_sf_night_verified_fixes_are_right_and_radii_honest(sf, sf_described):
 
     import numpy as np
 
-    from vlm_vpr_ros.localization.localizer import Localizer
-
     root, map_dir = sf
     described, truth = sf_described
     pipe = LocalizationPipeline.open(map_dir)
