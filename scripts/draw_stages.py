@@ -48,9 +48,10 @@ QUERY = (
           "posterior: visual score ×\nVLM error model"),
     Stage("vlm_vpr_ros.localization.localizer:Localizer.calibrated_radii",
           "calibrated 68 / 95 % radii"),
-    Stage("vlm_vpr_ros.localization.verification:verify", "geometric verification",
-          optional=True),
-    Stage("msg_adapters.navsat:navsat_fix", "sensor_msgs/NavSatFix\n(status from σ)"),
+    Stage("vlm_vpr_ros.localization.verification.stage:Verifier.verify",
+          "geometric verification of the top K:\nre-rank, inlier ratio, p_correct"),
+    Stage("msg_adapters.navsat:navsat_fix",
+          "sensor_msgs/NavSatFix\n(fix: verified p_correct + σ)"),
 )
 #: a map's path, from geotagged images to the folder the node opens
 BUILD = (
@@ -62,6 +63,10 @@ BUILD = (
     Stage("vlm_vpr_ros.maps.store:save_map", "map folder (v2 manifest,\natomic writes)"),
     Stage("vlm_vpr_ros.localization.fusion.calibration:calibrate_references",
           "leave-one-out calibration\n(calibration.json)"),
+    Stage("vlm_vpr_ros.localization.verification.build:store_features",
+          "local features stored\nper submap"),
+    Stage("vlm_vpr_ros.localization.verification.build:calibrate_map",
+          "leave-one-out p_correct\n(verification.json)"),
 )
 
 

@@ -61,7 +61,9 @@ ROSDEP_KEYS = {"numpy": "python3-numpy", "cv2": "python3-opencv", "yaml": "pytho
                "pyproj": "python3-pyproj",
                "reverse_geocoder": None,
                # optional (describe / build-map --engine ray), pip only: requirements.txt
-               "ray": None, "pyarrow": None}
+               "ray": None, "pyarrow": None,
+               # verification (docs/verification.md): learned features, BLAS threads; pip
+               "kornia": None, "threadpoolctl": None}
 #: ROS packages (declared by their own name)
 ROS_PACKAGES = {"rclpy", "rcl_interfaces", "lifecycle_msgs", "rosgraph_msgs", "std_msgs",
                 "sensor_msgs", "geometry_msgs", "diagnostic_msgs", "std_srvs",

@@ -84,9 +84,10 @@ def cmd_describe(args: argparse.Namespace) -> int:
 
 def cmd_build_map_ray(args: argparse.Namespace):
     """``build-map --engine ray``; returns the ReferenceMap."""
+    from vlm_vpr_ros.cli.common import local_feature_options
     from vlm_vpr_ros.distributed.build import build_map_ray
 
     return build_map_ray(args.images, args.coords, args.out, descriptor=args.descriptor,
                          descriptor_config=descriptor_options(args), partition=args.partition,
                          clusters=args.clusters, overwrite=args.overwrite, index=args.index,
-                         options=engine_options(args))
+                         options=engine_options(args), **local_feature_options(args))

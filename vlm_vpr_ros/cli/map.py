@@ -154,8 +154,23 @@ def map_info(path: str | Path) -> dict:
         "expected_ram_bytes": sum(s["ram_bytes"] for s in subs) if man["version"] >= 2
         else sum(s["disk_bytes"] for s in subs),
         "skipped": len(man.get("source", {}).get("skipped", [])),
+        "local_features": _local_features_info(man),
         "submaps": subs,
     }
+
+
+def _local_features_info(man: dict) -> dict | None:
+    """The stored local features (docs/verification.md): feature, bytes per reference, the
+    leave-one-out calibration of p_correct; None when the map stores none."""
+    sec = man.get("local_features")
+    if not sec:
+        return None
+    n = max(1, int(man.get("n_references", 0)))
+    return {"preset": sec.get("preset"), "feature": (sec.get("feature") or {}).get("name"),
+            "max_keypoints": sec.get("max_keypoints"), "bytes": int(sec.get("bytes", 0)),
+            "bytes_per_reference": round(int(sec.get("bytes", 0)) / n),
+            "keypoints_per_reference": round(int(sec.get("n_keypoints", 0)) / n, 1),
+            "calibrated": bool(man.get("verification_calibration"))}
 
 
 def _mb(b: int) -> str:
@@ -178,6 +193,15 @@ def cmd_info(args: argparse.Namespace) -> int:
     print(f"  index        {info['index']} ({kinds}); "
           f"rerank_factor {info['index_params'].get('rerank_factor', '-')}")
     print(f"  on disk      {_mb(info['disk_bytes'])}")
+    lf = info["local_features"]
+    if lf is None:
+        print("  local feat.  none (answers unverified unless reference images are given; "
+              "docs/verification.md)")
+    else:
+        print(f"  local feat.  {lf['preset']} ({lf['feature']}, <= {lf['max_keypoints']} "
+              f"keypoints): {lf['bytes_per_reference'] / 1e3:.1f} kB per reference "
+              f"({lf['keypoints_per_reference']:.0f} keypoints), {_mb(lf['bytes'])}; p_correct "
+              + ("calibrated by leave-one-out" if lf["calibrated"] else "uncalibrated"))
     print(f"  RAM (hot)    {_mb(info['expected_ram_bytes'])} when every submap has been "
           "searched" + (" (v1: loaded whole)" if info["version"] < 2 else ""))
     print(f"  {'submap':<14}{'group':<10}{'refs':>10}  {'kind':<5}{'disk':>14}{'RAM':>14}"

@@ -115,6 +115,7 @@ def evaluate_results_csv(results_csv, ground_truth_csv,
     gt_base = {os.path.basename(k): v for k, v in gt.items()}
     rows = read_table(results_csv, ("file", "lat", "lon"), "results CSV")
     est, truth, sigma, sigma95, flagged, missing = [], [], [], [], 0, 0
+    kept = []
     for row in rows:
         g = gt.get(row.get("file", "")) or gt_base.get(os.path.basename(row.get("file", "")))
         if g is None:
@@ -126,9 +127,52 @@ def evaluate_results_csv(results_csv, ground_truth_csv,
         sigma.append(_float(row.get("uncertainty_m")))
         sigma95.append(_float(row.get("radius95_m")))
         flagged += bool(row.get("flags"))
+        kept.append(row)
     errs = errors_km(est, truth)
     extra = {"coverage_pct": coverage_pct(errs, sigma),
              "coverage95_pct": (coverage_pct(errs, sigma95)
                                 if any(s is not None for s in sigma95) else None),
-             "flagged": flagged, "missing_gt": missing, "errors_km": errs}
+             "flagged": flagged, "missing_gt": missing, "errors_km": errs,
+             **verification_metrics(kept, truth, errs)}
     return summarize(errs, thresholds), extra
+
+
+RECALL_AT = (1, 5, 10, 20)
+
+
+def _top_positions(text: str | None) -> list[tuple[float, float]]:
+    out = []
+    for item in (text or "").split("|"):
+        parts = item.split()
+        if len(parts) == 2:
+            la, lo = _float(parts[0]), _float(parts[1])
+            if la is not None and lo is not None:
+                out.append((la, lo))
+    return out
+
+
+def verification_metrics(rows: Sequence[dict], truth: Sequence[tuple[float, float]],
+                         errs: Sequence[float | None], radius_m: float = 25.0) -> dict:
+    """What users of VPR tools read (docs/verification.md): recall@1/5/10/20 within
+    ``radius_m`` over the listed candidates (``top_positions``; None without the column),
+    the share of ``status == fix`` answers and their precision within 25 m and 50 m."""
+    n = len(rows)
+    recall = None
+    if n and any(r.get("top_positions") for r in rows):
+        hits = dict.fromkeys(RECALL_AT, 0)
+        for r, g in zip(rows, truth):
+            d = [float(haversine_km(g[0], g[1], la, lo)) * 1000.0
+                 for la, lo in _top_positions(r.get("top_positions"))]
+            for k in RECALL_AT:
+                hits[k] += any(x <= radius_m for x in d[:k])
+        recall = {f"@{k}": round(100.0 * v / n, 2) for k, v in hits.items()}
+    has_status = any(r.get("status") for r in rows)
+    fix_err = [e for r, e in zip(rows, errs) if r.get("status") == "fix"]
+    nf = len(fix_err)
+    fixes = None if not has_status else {
+        "n": nf, "rate_pct": round(100.0 * nf / n, 2) if n else 0.0,
+        "precision25_pct": (round(100.0 * sum(e is not None and e * 1e3 <= 25 for e in fix_err)
+                                  / nf, 2) if nf else None),
+        "precision50_pct": (round(100.0 * sum(e is not None and e * 1e3 <= 50 for e in fix_err)
+                                  / nf, 2) if nf else None)}
+    return {"recall_pct": recall, "fixes": fixes}

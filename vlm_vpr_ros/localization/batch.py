@@ -26,11 +26,15 @@ R = TypeVar("R")
 
 RESULT_FIELDS = ["file", "lat", "lon", "prior_lat", "prior_lon", "prior_source", "prior_reason",
                  "prior_parse", "submap", "ref_id", "uncertainty_m", "radius95_m", "confidence",
-                 "fusion", "n_candidates", "flags",
-                 "descriptor_ms", "retrieval_ms", "rerank_ms", "prior_latency_s"]
+                 "fusion", "n_candidates", "flags", "status", "p_correct", "inliers",
+                 "inlier_ratio", "descriptor_ms", "retrieval_ms", "rerank_ms", "verify_ms",
+                 "prior_latency_s", "top_ids", "top_positions"]
+#: called with (file, image, hypothesis) after each localized query (``--save-matches``)
+OnResult = Callable[[str, np.ndarray, Hypothesis], None]
 
 #: columns added after results files were first written: empty in older files (resume)
-ADDED_FIELDS = ("prior_parse",)
+ADDED_FIELDS = ("prior_parse", "status", "p_correct", "inliers", "inlier_ratio", "verify_ms",
+                "top_ids", "top_positions")
 
 
 def started_ahead(items: Iterable[T], start: Callable[[T], R],
@@ -48,8 +52,9 @@ def started_ahead(items: Iterable[T], start: Callable[[T], R],
 
 def localize_files(pipeline: LocalizationPipeline, provider: PriorProvider,
                    images_dir: str | Path, files: Sequence[str], prior_timeout_s: float = 60.0,
-                   window: int = 4) -> Iterator[dict]:
-    """Yield one result row per file, in order; unreadable images give a flagged empty row."""
+                   window: int = 4, on_result: OnResult | None = None) -> Iterator[dict]:
+    """Yield one result row per file, in order; unreadable images give a flagged empty row.
+    The query's local features (verification) are computed while its prior is pending."""
     images_dir = Path(images_dir)
 
     def start(f: str) -> tuple[np.ndarray | None, Any, str]:
@@ -68,10 +73,12 @@ def localize_files(pipeline: LocalizationPipeline, provider: PriorProvider,
             continue
         try:
             t0 = time.perf_counter()
-            desc = pipeline.describe(image)
+            query = pipeline.describe_query(image)
             t_desc = (time.perf_counter() - t0) * 1e3
             prior = wait_prior(fut, provider.name, prior_timeout_s)
-            hyp = pipeline.localize_descriptor(desc, prior)
+            hyp = pipeline.localize_descriptor(query.desc, prior, query.local)
+            if on_result is not None:
+                on_result(f, image, hyp)
         except VlmVprError as exc:
             log.warning("query %s failed: %s", f, exc)
             yield {"file": f, "flags": "error", "prior_reason": str(exc)}

@@ -45,7 +45,8 @@ def output_qos(durability: str) -> QoSProfile:
 
 def fix_policy(cfg: NodeConfig) -> FixPolicy:
     return FixPolicy(cfg.fallback_status, cfg.fallback_min_sigma_m, cfg.altitude_m,
-                     cfg.altitude_sigma_m, cfg.fix_max_sigma_m)
+                     cfg.altitude_sigma_m, cfg.fix_max_sigma_m, cfg.fix_min_p_correct,
+                     cfg.trust_prior_for_fix, cfg.trust_operator_prior)
 
 
 class Outputs:

@@ -88,7 +88,8 @@ class _Wiring(_Parameters):
             raise MapError(f"map_dir {cfg.map_dir!r} is not readable by this process")
         self.pipeline = LocalizationPipeline.open(
             path, descriptor=cfg.descriptor or None, localizer=cfg.localizer_config(),
-            descriptor_config=cfg.descriptor_options, verify=cfg.verify_map)
+            descriptor_config=cfg.descriptor_options, verify=cfg.verify_map,
+            verification=cfg.verification_config(), status=cfg.status_policy())
         self._provider = create_prior_provider(cfg.prior_provider, cfg.prior)
         self.policy = fix_policy(cfg)
         self._flag_log = Throttle(10.0)
@@ -182,7 +183,8 @@ class _Wiring(_Parameters):
         cfg = self.cfg
         self.policy = fix_policy(cfg)
         if self.runtime is not None:
-            self.runtime.update(runtime_config(cfg), cfg.localizer_config())
+            self.runtime.update(runtime_config(cfg), cfg.localizer_config(),
+                                cfg.status_policy(), cfg.verify_top_k)
             self.runtime.keep_images = cfg.publish_debug
         if self._stats is not None:
             self._stats.mode = cfg.mode
@@ -254,6 +256,8 @@ class _Wiring(_Parameters):
         pipe = runtime.pipeline if runtime is not None else self.pipeline
         values = {"map_dir": self.cfg.map_dir, "descriptor": pipe.descriptor.name,
                   "fusion": self.cfg.fusion, "calibration": pipe.localizer.calibration_source,
+                  "verification": pipe.verifier.unavailable or "on, p_correct calibrated by "
+                  + pipe.verifier.calibration_source,
                   "map_references": pipe.map.n_references,
                   "map_generation": pipe.map.manifest.get("generation", 0), **values}
         self.outputs.publish_diagnostics(self.get_clock().now().nanoseconds, level, message,

@@ -24,6 +24,8 @@ from typing import Any, Mapping
 from vlm_vpr_ros.errors import ConfigError
 from vlm_vpr_ros.geodesy import MAX_DISTANCE_KM
 from vlm_vpr_ros.localization.localizer import FUSION_MODES, LocalizerConfig
+from vlm_vpr_ros.localization.verification.stage import VerificationConfig
+from vlm_vpr_ros.localization.verification.status import StatusPolicy
 
 MODES = ("continuous", "on_trigger")
 QOS_CHOICES = ("sensor_data", "best_effort", "reliable")
@@ -103,13 +105,28 @@ class NodeConfig:
     max_frame_age_s: float = _p(2.0, "relocalize uses the latest frame if received within "
                                      "this many seconds (node clock), else the next frame",
                                 0.001, 86400.0, writable=True)
+    verify_top_k: int = _p(20, "candidates verified with local features + geometry per query "
+                               "(0 = off: every answer unverified, STATUS_NO_FIX)", 0, 1000,
+                           writable=True)
+    verification_required: bool = _p(False, "a map without usable local features (and no "
+                                            "reference_images_dir) fails configure; false: "
+                                            "a warning and unverified answers")
+    fix_min_p_correct: float = _p(0.95, "STATUS_FIX only when the verified answer's p_correct "
+                                        "(calibrated probability of being within 25 m) is at "
+                                        "least this", 0.5, 1.0, writable=True)
     fix_max_sigma_m: float = _p(50.0, "STATUS_FIX only when the fix's calibrated per-axis "
                                       "sigma is at most this (m); else STATUS_NO_FIX", 0.001,
                                 MAX_SIGMA_M, writable=True)
-    fallback_status: str = _p("no_fix", "NavSatFix status of fixes whose sigma exceeds "
-                                        "fix_max_sigma_m: no_fix or fix",
+    trust_prior_for_fix: bool = _p(False, "an answer decisive only because the prior removed "
+                                          "far look-alikes (prior_resolved) may be STATUS_FIX",
+                                   writable=True)
+    trust_operator_prior: bool = _p(False, "... only when the prior carries its own sigma_km "
+                                           "(an operator's hint: the fixed provider)",
+                                    writable=True)
+    fallback_status: str = _p("no_fix", "NavSatFix status of answers failing the status rule "
+                                        "(docs/verification.md): no_fix or fix",
                               choices=FALLBACK_STATUS, writable=True)
-    fallback_min_sigma_m: float = _p(0.0, "least 1-sigma of a fix exceeding fix_max_sigma_m "
+    fallback_min_sigma_m: float = _p(0.0, "least 1-sigma of an answer failing the status rule "
                                           "(m; 0 = its calibrated sigma)", 0.0, MAX_SIGMA_M,
                                      writable=True)
     altitude_m: float = _p(0.0, "altitude published in the fix (images give none)",
@@ -143,14 +160,23 @@ class NodeConfig:
     publish_debug: bool = _p(False, "publish ~/debug_image/compressed (query beside the chosen "
                                     "reference) and ~/candidates for every query",
                              writable=True)
-    reference_images_dir: str = _p("", "folder of the map's reference images for the debug "
-                                       "view ('' = the map's own images/ folder, if it has one)")
+    reference_images_dir: str = _p("", "folder of the map's reference images: verification of "
+                                       "maps that store no local features, and the debug view "
+                                       "('' = the map's own images/ folder, if it has one)")
     diagnostics_period_s: float = _p(1.0, "period of /diagnostics (also sent after each fix)",
                                      0.01, 3600.0)
     hardware_id: str = _p("vlm_vpr", "DiagnosticStatus.hardware_id", writable=True)
     prior: dict = field(default_factory=dict, metadata={"doc": "prior provider settings"})
     descriptor_options: dict = field(default_factory=dict,
                                      metadata={"doc": "descriptor settings (device, weights)"})
+
+    def verification_config(self) -> VerificationConfig:
+        return VerificationConfig(self.verify_top_k, self.verification_required,
+                                  os.path.expanduser(self.reference_images_dir))
+
+    def status_policy(self) -> StatusPolicy:
+        return StatusPolicy(self.fix_min_p_correct, self.fix_max_sigma_m,
+                            self.trust_prior_for_fix, self.trust_operator_prior)
 
     def localizer_config(self) -> LocalizerConfig:
         return LocalizerConfig(top_p=self.top_p, fusion=self.fusion,
@@ -241,6 +267,9 @@ def validate(cfg: NodeConfig, check_paths: bool = True) -> None:
     if check_paths:
         _require(os.path.isdir(os.path.expanduser(cfg.map_dir)),
                  f"parameter 'map_dir': {cfg.map_dir!r} is not a folder")
+        _require(not cfg.reference_images_dir or os.path.isdir(os.path.expanduser(
+            cfg.reference_images_dir)), f"parameter 'reference_images_dir': "
+            f"{cfg.reference_images_dir!r} is not a folder")
     _choice("mode", cfg.mode, MODES)
     _choice("qos", cfg.qos, QOS_CHOICES)
     _choice("fallback_status", cfg.fallback_status, FALLBACK_STATUS)

@@ -9,12 +9,14 @@ fields and a custom service type cannot be generated from the PyPI wheels.
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from dataclasses import dataclass
 from typing import Any
 
 from vlm_vpr_ros.errors import ConfigError
+from vlm_vpr_ros.localization.verification.status import horizontal_sigma
 
 FRAME_POLICIES = ("latest", "next")
 
@@ -88,8 +90,12 @@ def outcome_summary(outcome: Any, waited_s: float,
     else:
         prior = f"no prior ({pr.reason if pr else 'not asked'}): global retrieval"
     flag = f" FLAGGED [{'|'.join(h.flags)}]" if h.flagged else ""
+    # the status and sigma of the published fix (docs/verification.md)
+    status = "STATUS_FIX" if h.status == "fix" else f"NO_FIX ({h.status_reason or 'unverified'})"
+    p = "" if math.isnan(h.p_correct) else f"p_correct {h.p_correct:.3f}, "
     took = outcome.finished - outcome.started
     what = "relocalized frame" if outcome.trigger == "relocalize" else "fix for frame"
-    return True, (f"{what} {frame.key}: lat {h.lat:.6f}, lon {h.lon:.6f}, "
-                  f"sigma {h.uncertainty_m:.0f} m, reference {h.ref_id}, submap {h.submap}, "
-                  f"{prior}, {len(h.candidates)} candidates, {took:.2f} s{flag}")
+    return True, (f"{what} {frame.key}: lat {h.lat:.6f}, lon {h.lon:.6f}, {status}, "
+                  f"sigma {horizontal_sigma(h):.0f} m, {p}reference {h.ref_id}, "
+                  f"submap {h.submap}, {prior}, {len(h.candidates)} candidates, "
+                  f"{took:.2f} s{flag}")

@@ -106,6 +106,8 @@ class QueryRuntime:
                  stats: RuntimeStats | None = None, max_waiters: int = MAX_WAITERS) -> None:
         self.pipeline, self.provider, self.config = pipeline, provider, config
         self.localizer_config: LocalizerConfig = pipeline.localizer.config
+        #: verification settings tuned at runtime (status policy, verify_top_k); None: as opened
+        self.verification: tuple[Any, int | None] | None = None
         self.keep_images = False  # hand the decoded frame to on_outcome (debug view)
         self._waiters = threading.BoundedSemaphore(max(1, max_waiters))
         self._decode, self._encoded, self._on_outcome = decode, encoded, on_outcome
@@ -165,10 +167,14 @@ class QueryRuntime:
         return served.setdefault(kind, ticket)
 
     def update(self, config: RuntimeConfig | None = None,
-               localizer: LocalizerConfig | None = None) -> None:
+               localizer: LocalizerConfig | None = None, status: Any = None,
+               verify_top_k: int | None = None) -> None:
         """New settings from the next query on (runtime tuning); a running query keeps its
-        own. ``localizer``: per-query settings only (top_p, fusion, submaps, rerank)."""
+        own. ``localizer``: per-query settings only (top_p, fusion, submaps, rerank);
+        ``status`` (a StatusPolicy) and ``verify_top_k``: verification (docs/verification.md)."""
         with self._cond:
+            if status is not None or verify_top_k is not None:
+                self.verification = (status, verify_top_k)
             if config is not None:
                 self.config = config
                 self.stats.mode = config.mode
@@ -346,13 +352,16 @@ class QueryRuntime:
             encoded = self._encoded(frame.msg) if self._encoded else None
             future = self._request_prior(PriorQuery(image=rgb, encoded=encoded, key=frame.key))
         with self._cond:  # one map and one set of settings for the whole query
-            pipe, settings = self.pipeline, self.localizer_config
+            pipe, settings, verification = self.pipeline, self.localizer_config, \
+                self.verification
         tuned = {k: getattr(settings, k) for k in TUNABLE_LOCALIZER}
         if any(getattr(pipe.localizer.config, k) != v for k, v in tuned.items()):
             # tuned at runtime: the worker is the localizer's only user between queries
             pipe.localizer.config = dataclasses.replace(pipe.localizer.config, **tuned)
+        if verification is not None:
+            pipe.tune(*verification)
         try:
-            desc = pipe.describe(rgb)
+            query = pipe.describe_query(rgb)  # + local features for verification
         except VlmVprError as exc:
             if future is not None:
                 future.cancel()
@@ -362,7 +371,7 @@ class QueryRuntime:
         prior = self._await_prior(future, t1) if future is not None else None
         t3 = time.monotonic()
         try:
-            hyp = pipe.localize_descriptor(desc, prior)
+            hyp = pipe.localize_descriptor(query.desc, prior, query.local)
         except VlmVprError as exc:  # e.g. a map file truncated after start (maps/store.py)
             out.error = f"localization failed: {exc}"
             return
