@@ -8,6 +8,13 @@ fixture (tests/chat_server.py) answering after ``--vlm-delay`` seconds, and this
 records every NavSatFix (stamp → arrival latency) and the node's final /diagnostics.
 
     .venv/bin/python benchmarks/bench_node.py [--duration 60] [--hz 30] [--vlm-delay 3]
+
+``--debug-ratio`` runs the node twice in one invocation, ``publish_debug`` off then on (same
+camera, VLM and map), and prints the node's CPU per processed frame in both runs, their ratio,
+and the debug images received per processed frame:
+
+    .venv/bin/python benchmarks/bench_node.py --debug-ratio --duration 30 --vlm-delay 0.2 \
+        --min-period 0.5
 """
 
 from __future__ import annotations
@@ -46,10 +53,11 @@ def pct(values: list[float], q: float) -> float:
     return s[min(len(s) - 1, int(round(q * (len(s) - 1))))]
 
 
-def run(args: argparse.Namespace, tmp: Path) -> dict:
+def run(args: argparse.Namespace, tmp: Path, publish_debug: bool = False) -> dict:
     t0 = time.perf_counter()
-    build_map(DEMO_DATA / "images", DEMO_DATA / "coords.csv", tmp / "map",
-              descriptor=args.descriptor, partition="kmeans", clusters=8, progress=False)
+    if not (tmp / "map").exists():
+        build_map(DEMO_DATA / "images", DEMO_DATA / "coords.csv", tmp / "map",
+                  descriptor=args.descriptor, partition="kmeans", clusters=8, progress=False)
     build_s = time.perf_counter() - t0
     frame = cv2.resize(load_image(DEMO_DATA / "images" / QUERY), (640, 480),
                        interpolation=cv2.INTER_AREA)
@@ -60,7 +68,8 @@ def run(args: argparse.Namespace, tmp: Path) -> dict:
                             "prior.timeout_s": args.vlm_delay + 30.0,
                             "prior_timeout_s": args.vlm_delay + 30.0,
                             "min_period_s": args.min_period, "qos": args.qos,
-                            "qos_depth": args.qos_depth,
+                            "qos_depth": args.qos_depth, "publish_debug": publish_debug,
+                            "reference_images_dir": str(DEMO_DATA / "images"),
                             "diagnostics_period_s": 1.0}, tmp / "node.log", dom)
         node.start()
         client = None
@@ -68,6 +77,9 @@ def run(args: argparse.Namespace, tmp: Path) -> dict:
             client = GraphClient(dom)
             if not client.wait_subscribed(60.0):
                 raise SystemExit("node did not come up:\n" + node.log())
+            from sensor_msgs.msg import CompressedImage
+
+            debug = client.record(CompressedImage, "/vlm_vpr_node/debug_image/compressed")
             rss_start = node.rss_kib()
             cpu0 = cpu_s(node.pid)
             sent: set[int] = set()
@@ -94,6 +106,7 @@ def run(args: argparse.Namespace, tmp: Path) -> dict:
             rss_end = node.rss_kib()
             diag = client.latest_diag()
             fixes = list(client.fixes)
+            debug_images = len(debug)
         finally:
             if client is not None:
                 client.close()
@@ -122,7 +135,8 @@ def run(args: argparse.Namespace, tmp: Path) -> dict:
         "latency_max_s": round(max(steady), 3) if steady else None,
         "latency_max_all_s": round(max(lat_s), 3) if lat_s else None,
         "descriptor_ms_last": float(diag.get("descriptor_ms", "nan")),
-        "node_cpu_pct": round(100.0 * cpu / run_s, 1),
+        "node_cpu_pct": round(100.0 * cpu / run_s, 1), "node_cpu_s": round(cpu, 2),
+        "publish_debug": publish_debug, "debug_images": debug_images,
         "rss_start_mib": round(rss_start / 1024, 1), "rss_end_mib": round(rss_end / 1024, 1),
         "rss_trace_mib": rss_trace,
     }
@@ -139,8 +153,14 @@ def main() -> None:
                                                           "sensor_data"])
     ap.add_argument("--qos-depth", type=int, default=5)
     ap.add_argument("--json", action="store_true", help="print only the JSON result")
+    ap.add_argument("--debug-ratio", action="store_true",
+                    help="run with publish_debug off, then on; print the CPU ratio")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
+        if args.debug_ratio:
+            debug_ratio(run(args, Path(tmp), False), run(args, Path(tmp), True), args,
+                        Path(tmp) / "map")
+            return
         res = run(args, Path(tmp))
     if args.json:
         print(json.dumps(res))
@@ -172,6 +192,55 @@ def main() -> None:
     print(f"| {'measure':<{width}} | value |\n|{'-' * (width + 2)}|-------|")
     for k, v in rows:
         print(f"| {k:<{width}} | {v} |")
+
+
+def render_cost(map_dir: Path, repeats: int = 20) -> tuple[float, float]:
+    """In this process, median ms of one debug picture (render + JPEG, the work publish_debug
+    adds per query) and of one query's descriptor + localization, on the same 640x480 frame."""
+    from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
+    from vlm_vpr_ros.runtime import debug_view
+
+    frame = cv2.resize(load_image(DEMO_DATA / "images" / QUERY), (640, 480),
+                       interpolation=cv2.INTER_AREA)
+    pipe = LocalizationPipeline.open(map_dir)
+    refs = debug_view.ReferenceImages(DEMO_DATA / "images", cache_size=0)  # no cache hits
+    hyp = pipe.localize_image(frame)
+    t_debug, t_query = [], []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        pipe.localize_image(frame)
+        t1 = time.perf_counter()
+        picture = debug_view.render(frame, refs.load(hyp.ref_id),
+                                    debug_view.caption(hyp, "STATUS_FIX", 30.0))
+        debug_view.jpeg(picture)
+        debug_view.candidate_rows(hyp)
+        t2 = time.perf_counter()
+        t_query.append(t1 - t0)
+        t_debug.append(t2 - t1)
+    return 1e3 * statistics.median(t_debug), 1e3 * statistics.median(t_query)
+
+
+def debug_ratio(off: dict, on: dict, args: argparse.Namespace, map_dir: Path) -> None:
+    """The cost of publish_debug: node CPU per processed frame, off and on, in one run."""
+    rows = []
+    for res in (off, on):
+        n = max(1, res["frames_processed"])
+        rows.append((f"publish_debug {'on' if res['publish_debug'] else 'off'}",
+                     res["frames_processed"], res["debug_images"], res["node_cpu_s"],
+                     res["node_cpu_pct"], 1000.0 * res["node_cpu_s"] / n))
+    print(f"camera {args.hz:g} Hz 640x480 rgb8, {args.duration:g} s per run; VLM "
+          f"{args.vlm_delay:g} s; min_period_s {args.min_period:g}; load {os.getloadavg()[0]:.1f}")
+    print("| run | frames processed | debug images | node CPU s | node CPU % | CPU ms per "
+          "processed frame |\n|---|---|---|---|---|---|")
+    for name, proc, dbg, cpu, pct_, per in rows:
+        print(f"| {name} | {proc} | {dbg} | {cpu:.2f} | {pct_:.1f} | {per:.1f} |")
+    print(f"debug images per processed frame (on): "
+          f"{on['debug_images'] / max(1, on['frames_processed']):.3f}; (off): "
+          f"{off['debug_images']}")
+    print(f"CPU per processed frame, on / off: {rows[1][5] / max(1e-9, rows[0][5]):.2f}")
+    debug_ms, query_ms = render_cost(map_dir)
+    print(f"in-process, same frame: debug picture {debug_ms:.1f} ms vs query (descriptor + "
+          f"localization) {query_ms:.1f} ms: ratio {debug_ms / query_ms:.3f}")
 
 
 if __name__ == "__main__":

@@ -7,7 +7,7 @@
 # PARAMS.yaml defaults to launch_scripts/vlm_vpr_params.yaml; everything else is appended after
 # --ros-args (it overrides the file), e.g.
 #
-#   launch_scripts/run_node.sh -p map_dir:=maps/demo -p prior_provider:=fixed \
+#   launch_scripts/run_node.sh -p map_dir:=demo_out/map -p prior_provider:=fixed \
 #       -p prior.lat:=48.85 -p prior.lon:=2.35 -r image:=/camera/image_raw
 #
 # The Python interpreter is $PYTHON, else the repository's .venv, else python3. `exec` keeps the

@@ -7,9 +7,12 @@ For normal ROS 2 installs (``launch`` and ``launch_ros`` are not on PyPI; withou
 * ``params_file``: defaults to the installed ``vlm_vpr_params.yaml``.
 * ``image``: camera topic (``image/compressed`` is remapped to ``<image>/compressed``).
 * ``fix``: output topic of the NavSatFix (default ``fix`` in the launch namespace).
+* ``pose``: output topic of the PoseWithCovarianceStamped (default ``pose``; e.g.
+  ``/set_pose`` for robot_localization or ``/initialpose`` for Nav2 AMCL).
 * ``namespace``: namespace of the node.
 * ``use_sim_time``: follow ``/clock`` (``vlm-vpr replay --clock`` or a simulator).
-* ``qos``, ``prior_provider``: override the params file when not empty.
+* ``qos``, ``prior_provider``, ``fix_durability``, ``publish_debug``: override the params
+  file when not empty.
 * ``lifecycle``: run the managed variant (``vlm_vpr_lifecycle_node``); ``autostart`` then
   configures and activates it (set ``autostart:=false`` under a lifecycle manager).
 * ``fastdds_profile``: a Fast DDS XML profile for the node's process, e.g. the installed
@@ -33,15 +36,17 @@ TRUE = ("true", "1", "yes", "on")
 def _node(context, *args, **kwargs):
     get = lambda name: LaunchConfiguration(name).perform(context)  # noqa: E731
     overrides = {"map_dir": get("map_dir"), "use_sim_time": get("use_sim_time").lower() in TRUE}
-    for name in ("qos", "prior_provider"):
+    for name in ("qos", "prior_provider", "fix_durability"):
         if get(name):
             overrides[name] = get(name)
+    if get("publish_debug"):
+        overrides["publish_debug"] = get("publish_debug").lower() in TRUE
     image = get("image")
     common = dict(
         package="vlm_vpr_ros", name="vlm_vpr_node", namespace=get("namespace"),
         output="screen", parameters=[get("params_file"), overrides],
         remappings=[("image", image), ("image/compressed", image + "/compressed"),
-                    ("fix", get("fix"))])
+                    ("fix", get("fix")), ("pose", get("pose"))])
     profile = get("fastdds_profile")
     if profile:
         common["additional_env"] = {"FASTDDS_DEFAULT_PROFILES_FILE": profile,
@@ -75,6 +80,9 @@ def generate_launch_description() -> LaunchDescription:
                               description="sensor_msgs/Image topic of the camera"),
         DeclareLaunchArgument("fix", default_value="fix",
                               description="sensor_msgs/NavSatFix output topic"),
+        DeclareLaunchArgument("pose", default_value="pose",
+                              description="geometry_msgs/PoseWithCovarianceStamped output "
+                                          "topic (/set_pose, /initialpose)"),
         DeclareLaunchArgument("namespace", default_value="", description="node namespace"),
         DeclareLaunchArgument("use_sim_time", default_value="false",
                               description="use /clock (bag replay with --clock, simulators)"),
@@ -84,6 +92,12 @@ def generate_launch_description() -> LaunchDescription:
         DeclareLaunchArgument("prior_provider", default_value="",
                               description="none, fixed, recorded, answers, openai "
                                           "('' = the params file's)"),
+        DeclareLaunchArgument("fix_durability", default_value="",
+                              description="volatile | transient_local ('' = the params "
+                                          "file's)"),
+        DeclareLaunchArgument("publish_debug", default_value="",
+                              description="true: debug image and candidates ('' = the params "
+                                          "file's)"),
         DeclareLaunchArgument("lifecycle", default_value="false",
                               description="run the managed (lifecycle) node"),
         DeclareLaunchArgument("autostart", default_value="true",

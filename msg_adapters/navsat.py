@@ -1,20 +1,21 @@
 """``sensor_msgs/NavSatFix`` from a :class:`~vlm_vpr_ros.types.Hypothesis`.
 
-Policy (what ``robot_localization``'s navsat_transform expects; docs/fusion.md "NavSatFix"):
+Policy (what ``robot_localization``'s navsat_transform expects; docs/verification.md):
 
-* The status follows the *calibrated quality* of the fix, not whether a prior was used:
-  ``STATUS_FIX`` when the per-axis σ (below) is at most ``fix_max_sigma_m`` (default 50 m) and
-  there was a match; otherwise ``STATUS_NO_FIX`` with latitude/longitude still filled so people
-  and loggers see the guess. navsat_transform skips NO_FIX messages and its *first* accepted fix
-  becomes the datum of the UTM→world transform, so only fixes that are known to be precise may
-  reach it: a confident no-prior match is a fix with its real σ; a prior-guided guess with a
-  wide posterior is not. ``fallback_status="fix"`` publishes the imprecise ones as STATUS_FIX
-  too (their covariance then tells the filter how little to trust them), with σ at least
-  ``fallback_min_sigma_m`` (default 0: the honest σ).
+* The status follows the core's status rule (:func:`vlm_vpr_ros.localization.verification.
+  status.fix_status`, the same the results CSV, the relocalize answer and diagnostics use):
+  ``STATUS_FIX`` only for a *verified* answer with ``p_correct >= fix_min_p_correct`` (default
+  0.95) and per-axis σ <= ``fix_max_sigma_m`` (default 50 m); an answer decisive only because
+  the prior removed far look-alikes (``prior_resolved``) only when the prior is trusted
+  (``trust_prior_for_fix`` / ``trust_operator_prior``). Everything else is ``STATUS_NO_FIX``
+  with latitude/longitude still filled so people and loggers see the guess. navsat_transform
+  skips NO_FIX messages and its *first* accepted fix becomes the datum of the UTM→world
+  transform, so only fixes known to be right may reach it. ``fallback_status="fix"``
+  publishes the others as STATUS_FIX too (their covariance then tells the filter how little to
+  trust them), with σ at least ``fallback_min_sigma_m`` (default 0: the honest σ).
 * Covariance: ENU, row-major, m², diagonal ``[σ², σ², σz²]``, ``COVARIANCE_TYPE_APPROXIMATED``,
-  where σ is the per-axis σ of an isotropic 2-D Gaussian that holds at least the calibrated
-  68 % and 95 % radii of the hypothesis: ``σ = max(r68 / 1.5096, r95 / 2.4477)`` (the Rayleigh
-  quantiles), always finite.
+  σ = ``max(r68 / 1.5096, r95 / 2.4477)`` of the answer's radii (a verified fix: tens of
+  metres; an unverified answer: the posterior's radius), always finite.
 * Altitude: images give none; NaN would make navsat_transform drop every fix, so a configurable
   finite value (default 0 m) with a large vertical σ (default 1000 m) is published.
 * ``status.service`` is 0: no GNSS signal was used.
@@ -22,23 +23,21 @@ Policy (what ``robot_localization``'s navsat_transform expects; docs/fusion.md "
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Any
 
-from vlm_vpr_ros.geodesy import MAX_DISTANCE_KM
+from vlm_vpr_ros.localization.verification.status import (K68, K95, MAX_SIGMA_M, StatusPolicy,
+                                                          finite_sigma, fix_status,
+                                                          horizontal_sigma)
 from vlm_vpr_ros.types import Hypothesis
+
+__all__ = ["COVARIANCE_TYPE_APPROXIMATED", "FixFields", "FixPolicy", "K68", "K95",
+           "MAX_SIGMA_M", "STATUS_FIX", "STATUS_NO_FIX", "finite_sigma", "fix_fields",
+           "horizontal_sigma", "navsat_fix"]
 
 STATUS_NO_FIX = -1
 STATUS_FIX = 0
 COVARIANCE_TYPE_APPROXIMATED = 1
-#: the largest σ ever published (half the Earth's circumference)
-MAX_SIGMA_M = MAX_DISTANCE_KM * 1000.0
-
-
-#: radius / σ of an isotropic 2-D Gaussian holding 68 % and 95 % of the mass (Rayleigh)
-K68 = math.sqrt(-2.0 * math.log(0.32))
-K95 = math.sqrt(-2.0 * math.log(0.05))
 
 
 @dataclass(frozen=True)
@@ -48,6 +47,13 @@ class FixPolicy:
     altitude_m: float = 0.0
     altitude_sigma_m: float = 1000.0
     fix_max_sigma_m: float = 50.0  # STATUS_FIX only when σ <= this
+    fix_min_p_correct: float = 0.95  # ... and p_correct >= this
+    trust_prior_for_fix: bool = False  # prior_resolved answers may be fixes
+    trust_operator_prior: bool = False  # ... when the prior carries its own sigma_km
+
+    def status_policy(self) -> StatusPolicy:
+        return StatusPolicy(self.fix_min_p_correct, self.fix_max_sigma_m,
+                            self.trust_prior_for_fix, self.trust_operator_prior)
 
 
 @dataclass(frozen=True)
@@ -61,32 +67,15 @@ class FixFields:
     sigma_m: float
     covariance: tuple[float, ...]  # 9 values, row-major ENU, m²
     flagged: bool
-    precise: bool = True  # passed the σ rule for STATUS_FIX
-
-
-def finite_sigma(sigma_m: float) -> float:
-    """Clamp a radius to (0, MAX_SIGMA_M]; non-finite or non-positive values become the max."""
-    s = float(sigma_m)
-    if not math.isfinite(s) or s <= 0.0:
-        return MAX_SIGMA_M
-    return min(s, MAX_SIGMA_M)
-
-
-def horizontal_sigma(hyp: Hypothesis) -> float:
-    """Per-axis σ (m) of the fix from its calibrated 68 % / 95 % radii (module docstring)."""
-    s = finite_sigma(hyp.uncertainty_m) / K68
-    r95 = float(getattr(hyp, "radius95_m", math.nan))
-    if math.isfinite(r95) and r95 > 0:
-        s = max(s, finite_sigma(r95) / K95)
-    return finite_sigma(s)
+    precise: bool = True  # passed the status rule for STATUS_FIX
+    reason: str = ""  # why not (status rule)
 
 
 def fix_fields(hyp: Hypothesis, policy: FixPolicy | None = None) -> FixFields:
     """Status, covariance and position of the fix for ``hyp`` under ``policy``."""
     policy = policy or FixPolicy()
     sigma = horizontal_sigma(hyp)
-    precise = (sigma <= policy.fix_max_sigma_m and "no_match" not in hyp.flags
-               and math.isfinite(hyp.lat) and math.isfinite(hyp.lon))
+    precise, reason = fix_status(hyp, policy.status_policy())
     status = STATUS_FIX
     if not precise:
         sigma = finite_sigma(max(sigma, policy.fallback_min_sigma_m))
@@ -96,7 +85,7 @@ def fix_fields(hyp: Hypothesis, policy: FixPolicy | None = None) -> FixFields:
     var_z = finite_sigma(policy.altitude_sigma_m) ** 2
     cov = (var, 0.0, 0.0, 0.0, var, 0.0, 0.0, 0.0, var_z)
     return FixFields(float(hyp.lat), float(hyp.lon), float(policy.altitude_m), status, sigma,
-                     cov, hyp.flagged, precise)
+                     cov, hyp.flagged, precise, reason)
 
 
 def navsat_fix(hyp: Hypothesis, stamp_ns: int, frame_id: str,

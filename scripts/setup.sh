@@ -1,6 +1,9 @@
 #!/usr/bin/env bash
 # One command installs everything vlm_vpr_ros needs into ./.venv (Debian/Ubuntu, Python 3.11+).
-# torch is installed on its own, pinned, so no resolver can ever pull the multi-GB CUDA build.
+# torch is installed on its own, pinned, before everything else. PyPI's Linux x86_64 wheel of
+# torch is the CUDA build (several GB of nvidia-* packages); on a CPU-only machine take the CPU
+# wheel from PyTorch's own index: TORCH_INDEX_URL=https://download.pytorch.org/whl/cpu make setup
+# (README "CPU-only machines"). TORCH_SPEC replaces the requirement itself.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
@@ -8,8 +11,9 @@ PY=${PYTHON:-python3}
   || { echo "Python 3.11+ required (found $("$PY" --version))" >&2; exit 1; }
 [ -x .venv/bin/python ] || "$PY" -m venv .venv
 .venv/bin/python -m pip install -q --upgrade pip
-# CPU build of torch 2.13.0; on a CUDA machine set TORCH_SPEC to your wheel/index of choice.
-.venv/bin/python -m pip install -q "${TORCH_SPEC:-torch==2.13.0}"
+torch_args=("${TORCH_SPEC:-torch==2.13.0}")
+if [ -n "${TORCH_INDEX_URL:-}" ]; then torch_args+=(--index-url "$TORCH_INDEX_URL"); fi
+.venv/bin/python -m pip install -q "${torch_args[@]}"
 .venv/bin/python -m pip install -q -r requirements.txt
 # The package itself (editable): console scripts vlm-vpr / vlm_vpr_node, share/ data files.
 .venv/bin/python -m pip install -q --no-deps --no-build-isolation -e .

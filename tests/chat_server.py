@@ -18,26 +18,58 @@ JSON answer), ``prose`` (coordinates in running text), ``hang`` (never answers u
 Misbehaviours for the fault suite: ``garbage`` (200 with non-JSON bytes), ``huge`` (a 50 MB body,
 streamed in 1 MB blocks), ``drip`` (headers, then one byte every ``delay_s``, at most 600 bytes),
 ``reset`` (the connection is reset without an answer), ``silence`` (the request is read, then
-nothing is sent until stopped: same as ``hang``). Every loop is bounded and stops with the
-server.
+nothing is sent until stopped: same as ``hang``), ``echo`` (the answer text is the request
+headers, as a careless proxy or debug server would send them), ``text`` (the answer is
+``content``, set with :meth:`ChatServer.set`), ``length`` (no text, ``finish_reason:
+"length"``: a reasoning model that spent its token limit on hidden reasoning). Every loop is
+bounded and stops with the server.
+
+Dialects (``dialect=``), each with the routes, auth and error bodies of the real server
+(tests/chat_dialects.py): ``openai`` (default), ``openai_reasoning`` (rejects ``max_tokens``
+and any ``temperature`` but 1, like OpenAI's o-series and gpt-5 models), ``azure`` (a
+deployment route, ``api-version`` query, ``api-key`` header), ``ollama`` and ``vllm`` (their
+OpenAI-compatible ``/v1`` routes). ``api_key=`` makes the server demand that key;
+``structured=`` says what it does with ``response_format`` (``True`` honours it, ``False``
+refuses it with a 400, ``"ignore"`` answers in prose anyway); ``tls=(cert, key)`` serves https.
+The server counts TCP connections (:attr:`ChatServer.connections`); ``keep_alive=False``
+closes each connection after its answer without announcing it (as an idle timeout would).
 """
 
 from __future__ import annotations
 
 import http.server
 import json
+import ssl
 import threading
 import time
 from typing import Any
 
+from chat_dialects import DIALECTS, body_problem, route_problem, structured_answer
+
 BEHAVIOURS = ("ok", "slow", "429", "500", "malformed", "refusal", "fenced", "prose", "hang",
-              "garbage", "huge", "drip", "reset", "silence")
+              "garbage", "huge", "drip", "reset", "silence", "echo", "text", "length")
 HUGE_BYTES = 50 * 1024 * 1024
 
 
 class _Handler(http.server.BaseHTTPRequestHandler):
     server: "_Server"
     protocol_version = "HTTP/1.1"
+
+    def setup(self) -> None:
+        self.server.owner._on_connection()
+        if isinstance(self.request, ssl.SSLSocket):  # TLS handshake in this thread
+            self.request.settimeout(10.0)
+            try:
+                self.request.do_handshake()
+            except (OSError, ssl.SSLError):
+                self.request.close()
+        super().setup()
+
+    def handle(self) -> None:
+        try:
+            super().handle()
+        except (OSError, ssl.SSLError):
+            pass  # a client that went away or spoke no TLS: fine for a fixture
 
     def log_message(self, format: str, *args: Any) -> None:  # noqa: A002 - silence stderr
         pass
@@ -51,15 +83,24 @@ class _Handler(http.server.BaseHTTPRequestHandler):
     def do_POST(self) -> None:  # noqa: N802 - http.server naming
         length = int(self.headers.get("Content-Length") or 0)
         raw = self.rfile.read(length) if length else b""
-        if not self.path.rstrip("/").endswith("/chat/completions"):
-            self._send(404, {"error": {"message": f"no route {self.path}"}})
+        owner = self.server.owner
+        headers = dict(self.headers.items())
+        problem = route_problem(owner.dialect, self.path, headers, owner.api_key,
+                                owner.deployment)
+        if problem is not None:
+            self._send(*problem)
             return
         try:
             body = json.loads(raw.decode("utf-8"))
         except (UnicodeDecodeError, json.JSONDecodeError):
             self._send(400, {"error": {"message": "request body is not JSON"}})
             return
-        self.server.owner._on_request(self, body, dict(self.headers.items()))
+        problem = body_problem(owner.dialect, body, owner.models, owner.structured)
+        if problem is not None:
+            owner._record(body, headers, rejected=True)
+            self._send(*problem)
+            return
+        owner._on_request(self, body, headers)
 
     def _send(self, status: int, payload: Any, headers: dict[str, str] | None = None,
               raw: bytes | None = None) -> None:
@@ -74,6 +115,8 @@ class _Handler(http.server.BaseHTTPRequestHandler):
             self.wfile.write(data)
         except (BrokenPipeError, ConnectionResetError):
             pass  # the client gave up (timeout/cancel): fine for a fixture
+        if not self.server.owner.keep_alive:  # close without saying so (an idle timeout)
+            self.close_connection = True
 
 
 class _Server(http.server.ThreadingHTTPServer):
@@ -82,22 +125,39 @@ class _Server(http.server.ThreadingHTTPServer):
     owner: "ChatServer"
 
 
-def completion(content: str, model: str = "fixture-model") -> dict[str, Any]:
+def completion(content: str, model: str = "fixture-model", finish: str = "stop",
+               dialect: str = "openai") -> dict[str, Any]:
     """A minimal chat-completions response body carrying ``content``."""
-    return {
+    body = {
         "id": "chatcmpl-fixture", "object": "chat.completion", "created": int(time.time()),
         "model": model,
-        "choices": [{"index": 0, "finish_reason": "stop",
+        "choices": [{"index": 0, "finish_reason": finish,
                      "message": {"role": "assistant", "content": content}}],
         "usage": {"prompt_tokens": 1, "completion_tokens": 1, "total_tokens": 2},
     }
+    if dialect == "ollama":
+        body["system_fingerprint"] = "fp_ollama"
+    return body
 
 
 class ChatServer:
     """Loopback chat-completions server (test fixture). Use as a context manager."""
 
     def __init__(self, behaviour: str = "ok", lat: float = 48.8584, lon: float = 2.2945,
-                 delay_s: float = 0.0, retry_after_s: float = 1.0, fail_times: int = 0) -> None:
+                 delay_s: float = 0.0, retry_after_s: float = 1.0, fail_times: int = 0,
+                 dialect: str = "openai", api_key: str | None = None,
+                 models: tuple[str, ...] | None = None, deployment: str = "gpt-5-mini",
+                 structured: bool | str = True, tls: tuple[str, str] | None = None,
+                 uncertainty_km: float = 25.0, keep_alive: bool = True) -> None:
+        if dialect not in DIALECTS:
+            raise ValueError(f"unknown dialect {dialect!r}; choices: {DIALECTS}")
+        self.dialect, self.api_key, self.models = dialect, api_key, models
+        self.deployment, self.structured, self.tls = deployment, structured, tls
+        self.uncertainty_km = uncertainty_km
+        self.keep_alive = keep_alive
+        self.content = ""
+        self._connections = 0
+        self._rejected: list[dict[str, Any]] = []
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._requests: list[dict[str, Any]] = []
@@ -120,6 +180,11 @@ class ChatServer:
         self._stop.clear()
         self._httpd = _Server(("127.0.0.1", 0), _Handler)
         self._httpd.owner = self
+        if self.tls is not None:
+            ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+            ctx.load_cert_chain(*self.tls)
+            self._httpd.socket = ctx.wrap_socket(self._httpd.socket, server_side=True,
+                                                 do_handshake_on_connect=False)
         self._thread = threading.Thread(target=self._httpd.serve_forever,
                                         kwargs={"poll_interval": 0.05},
                                         name="chat-fixture", daemon=True)
@@ -150,7 +215,28 @@ class ChatServer:
 
     @property
     def base_url(self) -> str:
-        return f"http://127.0.0.1:{self.port}/v1"
+        """The URL a user would configure: ``.../v1``, or for ``azure`` the deployment's
+        chat-completions URL with its ``api-version``."""
+        return self.url_for("127.0.0.1")
+
+    def url_for(self, host: str, api_version: str = "2024-10-21") -> str:
+        scheme = "https" if self.tls else "http"
+        if self.dialect == "azure":
+            return (f"{scheme}://{host}:{self.port}/openai/deployments/{self.deployment}"
+                    f"/chat/completions?api-version={api_version}")
+        return f"{scheme}://{host}:{self.port}/v1"
+
+    @property
+    def connections(self) -> int:
+        """TCP connections accepted so far."""
+        with self._lock:
+            return self._connections
+
+    @property
+    def rejected(self) -> list[dict[str, Any]]:
+        """Bodies refused by the dialect's checks (400/404), in order."""
+        with self._lock:
+            return list(self._rejected)
 
     @property
     def requests(self) -> list[dict[str, Any]]:
@@ -172,9 +258,12 @@ class ChatServer:
 
     def set(self, behaviour: str | None = None, delay_s: float | None = None,
             lat: float | None = None, lon: float | None = None,
-            retry_after_s: float | None = None, fail_times: int | None = None) -> None:
+            retry_after_s: float | None = None, fail_times: int | None = None,
+            content: str | None = None) -> None:
         """Change behaviour at runtime; ``fail_times`` changes reset the failure counter."""
         with self._lock:
+            if content is not None:
+                self.content = content
             if behaviour is not None:
                 if behaviour not in BEHAVIOURS:
                     raise ValueError(f"unknown behaviour {behaviour!r}; choices: {BEHAVIOURS}")
@@ -193,12 +282,22 @@ class ChatServer:
                 self._failures = 0
 
     # --- request handling ------------------------------------------------------------------
+    def _on_connection(self) -> None:
+        with self._lock:
+            self._connections += 1
+
+    def _record(self, body: dict[str, Any], headers: dict[str, str],
+                rejected: bool = False) -> None:
+        with self._lock:
+            (self._rejected if rejected else self._requests).append(body)
+            if not rejected:
+                self._headers.append(headers)
+                self._times.append(time.monotonic())
+
     def _on_request(self, handler: _Handler, body: dict[str, Any],
                     headers: dict[str, str]) -> None:
+        self._record(body, headers)
         with self._lock:
-            self._requests.append(body)
-            self._headers.append(headers)
-            self._times.append(time.monotonic())
             behaviour, lat, lon = self.behaviour, self.lat, self.lon
             delay, retry_after = self.delay_s, self.retry_after_s
             failing = False
@@ -208,6 +307,14 @@ class ChatServer:
                     self._failures += 1
         model = str(body.get("model", "fixture-model"))
         answer = json.dumps({"latitude": lat, "longitude": lon})
+        schema = (body.get("response_format") or {}).get("json_schema")
+        if behaviour == "ok" and schema and self.structured is True:
+            handler._send(200, completion(
+                structured_answer(schema, lat, lon, self.uncertainty_km), model,
+                dialect=self.dialect))
+            return
+        if behaviour == "ok" and schema and self.structured == "ignore":
+            behaviour = "prose"
         if behaviour in ("hang", "silence"):
             self._stop.wait()
             return
@@ -231,9 +338,16 @@ class ChatServer:
         elif behaviour == "prose":
             handler._send(200, completion(
                 f"This looks like central Paris. My best estimate is latitude {lat}, "
-                f"longitude {lon}.", model))
+                f"longitude {lon}.", model, dialect=self.dialect))
+        elif behaviour == "echo":
+            handler._send(200, completion("Request headers:\n" + "\n".join(
+                f"{k}: {v}" for k, v in headers.items()), model, dialect=self.dialect))
+        elif behaviour == "text":
+            handler._send(200, completion(self.content, model, dialect=self.dialect))
+        elif behaviour == "length":
+            handler._send(200, completion("", model, finish="length", dialect=self.dialect))
         else:
-            handler._send(200, completion(answer, model))
+            handler._send(200, completion(answer, model, dialect=self.dialect))
 
     def _misbehave(self, handler: _Handler, behaviour: str, delay: float) -> None:
         import socket

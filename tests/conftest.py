@@ -62,3 +62,19 @@ def demo_half_map(tmp_path_factory, demo_data) -> tuple[list, Path]:
               descriptor_config={"max_side": 320}, partition="kmeans", clusters=6,
               progress=False)
     return rows, work / "map"
+
+
+@pytest.fixture(scope="session")
+def demo_run(tmp_path_factory) -> tuple[Path, str]:
+    """One run of the shipped demo (``vlm-vpr demo``) shared by the tests that need it:
+    (its ``demo_out`` folder, what it printed)."""
+    import contextlib
+    import io
+
+    from vlm_vpr_ros.evaluation.demo import run_demo
+
+    out = tmp_path_factory.mktemp("demo_run") / "demo_out"
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        assert run_demo(out) == 0
+    return out, printed.getvalue()

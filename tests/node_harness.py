@@ -238,6 +238,24 @@ class GraphClient:
         finally:
             self.node.destroy_client(client)
 
+    def record(self, msg_type: Any, topic: str, qos: Any = 10) -> list:
+        """Subscribe to ``topic`` now; the returned list fills with (msg, arrival ns)."""
+        store: list = []
+        self.node.create_subscription(msg_type, topic, self._record(store), qos)
+        return store
+
+    def set_parameters(self, node_name: str, values: dict[str, Any],
+                       timeout_s: float = 20.0) -> list:
+        """``set_parameters`` on another node: one SetParametersResult per value."""
+        from rcl_interfaces.srv import SetParameters
+        from rclpy.parameter import Parameter
+
+        req = SetParameters.Request(parameters=[Parameter(k, value=v).to_parameter_msg()
+                                                for k, v in values.items()])
+        resp = self.call(SetParameters, f"{node_name}/set_parameters", req, timeout_s)
+        assert resp is not None, f"{node_name}/set_parameters did not answer"
+        return list(resp.results)
+
     def call_relocalize(self, timeout_s: float = 30.0,
                         tick: Callable[[], None] | None = None) -> Any:
         if not self.trigger.wait_for_service(timeout_sec=20.0):

@@ -27,8 +27,7 @@ import numpy as np
 
 from vlm_vpr_ros.bags.messages import (COMPRESSED, IMAGE, NAVSATFIX, compressed_msg, image_msg,
                                        navsatfix_msg)
-from vlm_vpr_ros.bags.msgdefs import qos_profile
-from vlm_vpr_ros.bags.writer import Rosbag2McapWriter
+from vlm_vpr_ros.bags.writer import BagWriter, qos_profile
 
 T0 = 1_700_000_000 * 10**9
 
@@ -84,7 +83,7 @@ def write_teach_bag(out: Path, places: Sequence[Place], fix_hz: float = 10.0,
             t += travel
     t_end = t
     compressed = isinstance(places[0].image, (bytes, bytearray))
-    with Rosbag2McapWriter(out) as bag:
+    with BagWriter(out) as bag:
         bag.add_topic(image_topic, COMPRESSED if compressed else IMAGE, [qos_profile(depth=10)])
         if extra_image_topic:
             bag.add_topic(extra_image_topic, COMPRESSED if compressed else IMAGE,

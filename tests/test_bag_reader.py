@@ -10,6 +10,7 @@ import pytest
 
 from vlm_vpr_ros.bags.messages import IMAGE_TYPES, NAVSATFIX
 from vlm_vpr_ros.bags.reader import deserialize, open_bag
+from vlm_vpr_ros.bags.writer import bag_files
 from vlm_vpr_ros.errors import BagError
 
 BAGS = "data/bags"
@@ -90,18 +91,18 @@ def raw_bag(demo_data, tmp_path_factory) -> Path:
     return root / "bag"
 
 
-@pytest.mark.parametrize("fraction", [0.0005, 0.3, 0.62, 0.999])
+@pytest.mark.parametrize("fraction", [0.0005, 0.3, 0.62, -64])  # < 0: bytes cut off the end
 def test_truncated_mcap_keeps_what_was_read(raw_bag, tmp_path, fraction):
     full = [(m.topic, m.log_time_ns, m.data) for m in open_bag(raw_bag).messages()]
-    src = raw_bag / f"{raw_bag.name}_0.mcap"
+    src = bag_files(raw_bag)[0]
     data = src.read_bytes()
     cut = tmp_path / "cut.mcap"
-    cut.write_bytes(data[:int(len(data) * fraction)])
+    cut.write_bytes(data[:int(len(data) * fraction)] if fraction > 0 else data[:fraction])
     bag = open_bag(cut)  # header intact: opens, reports the damage
     got = [(m.topic, m.log_time_ns, m.data) for m in bag.messages()]
     assert not bag.complete and "truncated" in " ".join(bag.problems)
     assert got == full[:len(got)]  # an exact prefix: nothing garbled
-    if fraction > 0.9:
+    if fraction < 0:
         assert len(got) == len(full)  # only the summary was lost
     elif fraction > 0.2:
         assert 0 < len(got) < len(full)
@@ -112,7 +113,7 @@ def test_truncated_mcap_keeps_what_was_read(raw_bag, tmp_path, fraction):
 
 
 def test_mcap_cut_inside_magic_and_garbage(tmp_path, raw_bag):
-    src = (raw_bag / f"{raw_bag.name}_0.mcap").read_bytes()
+    src = bag_files(raw_bag)[0].read_bytes()
     for name, payload in [("short.mcap", src[:4]), ("zero.mcap", b""),
                           ("text.mcap", b"hello, not a bag\n" * 10)]:
         (tmp_path / name).write_bytes(payload)
@@ -120,8 +121,32 @@ def test_mcap_cut_inside_magic_and_garbage(tmp_path, raw_bag):
             open_bag(tmp_path / name)
 
 
-def test_corrupt_chunk_is_detected(tmp_path, raw_bag):
-    data = bytearray((raw_bag / f"{raw_bag.name}_0.mcap").read_bytes())
+def _with_crcs(src: Path, dst: Path, compression: str) -> Path:
+    """The MCAP rewritten by the mcap library's writer, which stores chunk CRCs (as rosbag2
+    does; rosbags writes 0 = "not computed")."""
+    from mcap.reader import make_reader
+    from mcap.writer import CompressionType, Writer
+
+    with open(src, "rb") as fh, open(dst, "wb") as out:
+        summary = make_reader(fh).get_summary()
+        w = Writer(out, compression=CompressionType[compression.upper()])
+        w.start(profile="ros2")
+        for sid, sch in summary.schemas.items():
+            w.register_schema(sch.name, sch.encoding, sch.data)  # ids in the same order
+        for cid, ch in summary.channels.items():
+            w.register_channel(ch.topic, ch.message_encoding, ch.schema_id, ch.metadata)
+        fh.seek(0)
+        for _, ch, m in make_reader(fh).iter_messages():
+            w.add_message(ch.id, m.log_time, m.data, m.publish_time)
+        w.finish()
+    return dst
+
+
+@pytest.mark.parametrize("compression", ["none", "zstd"])
+def test_corrupt_chunk_is_detected(tmp_path, raw_bag, compression):
+    src = _with_crcs(bag_files(raw_bag)[0], tmp_path / "crc.mcap", compression)
+    assert sum(1 for _ in open_bag(src).messages()) == 10
+    data = bytearray(src.read_bytes())
     data[len(data) // 2] ^= 0xFF  # flip a byte inside a chunk: its CRC no longer matches
     (tmp_path / "flip.mcap").write_bytes(bytes(data))
     bag = open_bag(tmp_path / "flip.mcap")
@@ -153,7 +178,7 @@ def test_missing_paths(tmp_path, raw_bag):
         open_bag(tmp_path / "empty")
     copy = tmp_path / "copy"
     shutil.copytree(raw_bag, copy)
-    (copy / f"{raw_bag.name}_0.mcap").unlink()
+    (copy / bag_files(raw_bag)[0].name).unlink()
     with pytest.raises(BagError, match="lists missing file"):
         open_bag(copy)
     (tmp_path / "x.bag").write_bytes(b"#ROSBAG V2.0\n")

@@ -71,7 +71,8 @@ def test_build_localize_evaluate(tmp_path, demo_data, queries):
     # evaluate --json: recompute the expected numbers independently from the CSVs
     proc = run("evaluate", "--results", res, "--ground-truth", queries / "queries.csv", "--json")
     summary = json.loads(proc.stdout)
-    assert set(summary) == {"n", "accuracy", "median_km"} and summary["n"] == 11
+    assert set(summary) == {"n", "accuracy", "median_km", "recall_pct", "fixes",
+                            "coverage68_pct", "coverage95_pct"} and summary["n"] == 11
     gt = {r["file"]: (float(r["lat"]), float(r["lon"]))
           for r in csv.DictReader(open(queries / "queries.csv"))}
     errs = [haversine_km(float(r["lat"]), float(r["lon"]), *gt[r["file"]]) for r in ok]
@@ -79,7 +80,8 @@ def test_build_localize_evaluate(tmp_path, demo_data, queries):
         assert summary["accuracy"][key] == pytest.approx(
             round(100 * sum(e <= t for e in errs) / 11, 2))
     table = run("evaluate", "--results", res, "--ground-truth", queries / "queries.csv").stdout
-    assert "2500km" in table and "coverage" not in proc.stdout
+    assert "2500km" in table and "coverage:" in table and "coverage:" not in proc.stdout
+    assert "recall within 25 m: R@1" in table and "fixes (status fix):" in table
 
 
 def test_localize_without_prior_flags_rows(tmp_path, demo_map, queries):

@@ -85,7 +85,7 @@ def test_readme_is_short_and_links_every_topic_page():
     text = (REPO / "README.md").read_text(encoding="utf-8")
     assert len(text.splitlines()) <= 260
     for name in ("node", "maps", "priors", "bags", "models", "evaluation", "fusion",
-                 "robustness", "planet_scale", "ray", "teach"):
+                 "verification", "robustness", "planet_scale", "ray", "teach"):
         assert f"(docs/{name}.md)" in text, name
     for cmd in ("make setup", "make test", "make demo"):
         assert cmd in text

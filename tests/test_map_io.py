@@ -1,5 +1,6 @@
 """Map folder: round trip, validation of every corrupt case, overwrite protection, resume."""
 
+import hashlib
 import json
 import shutil
 
@@ -86,8 +87,15 @@ def test_flipped_byte_is_caught_by_checksum_and_faiss_garbage_by_reader(map_copy
     f.write_bytes(bytes(data))
     with pytest.raises(MapError, match="checksum"):
         ReferenceMap.load(map_copy, verify=True)
-    # without checksum verification, a garbage index must still fail cleanly (on first use)
+    # without the full pass, the content check at open (small files: sha256) refuses it too
+    with pytest.raises(MapError, match="does not match the manifest"):
+        ReferenceMap.load(map_copy, verify=False)
+    # a garbage index that passes the manifest check must still fail cleanly (on first use)
     f.write_bytes(b"\x00" * len(data))
+    man = json.loads((map_copy / "manifest.json").read_text())
+    rel = f.relative_to(map_copy).as_posix()
+    man["files"][rel]["sha256"] = hashlib.sha256(f.read_bytes()).hexdigest()
+    (map_copy / "manifest.json").write_text(json.dumps(man))
     m = ReferenceMap.load(map_copy, verify=False)
     with pytest.raises(MapError):
         for s in m.submaps:

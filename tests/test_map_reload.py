@@ -146,9 +146,9 @@ def test_node_map_reload_service(half, demo_data, tmp_path):
 
 
 def test_reload_checks_as_much_as_the_start_did(half, tmp_path, monkeypatch):
-    """Opened without verify_map (the default), a reload hashes no index, coordinate or id file
-    (a 4.1M map is 4.5 GB; only the small calibration.json is always checked) but still
-    refuses a file whose size no longer matches the manifest."""
+    """Opened without verify_map (the default), a reload hashes no file larger than
+    SMALL_FILE_BYTES whole (a 4.1M map is 4.5 GB: large files are checked by sampled pages)
+    but still refuses a file whose size no longer matches the manifest."""
     from vlm_vpr_ros.maps import format as map_format
 
     _, src = half
@@ -156,16 +156,17 @@ def test_reload_checks_as_much_as_the_start_did(half, tmp_path, monkeypatch):
     shutil.copytree(src, map_dir)
     pipe = LocalizationPipeline.open(map_dir)
     assert not pipe.verify and LocalizationPipeline.open(map_dir, verify=True).verify
-    hashed, real = [], map_format.file_sha256
+    hashed, big, real = [], [], map_format.file_sha256
 
     def spy(path):
         hashed.append(Path(path).name)
+        big.append(Path(path).stat().st_size > map_format.SMALL_FILE_BYTES)
         return real(path)
 
     monkeypatch.setattr(map_format, "file_sha256", spy)
     new = pipe.reloaded()
     assert new.map.n_references == pipe.map.n_references and not new.verify
-    assert set(hashed) <= {"calibration.json"}, hashed
+    assert "calibration.json" in hashed and not any(big)
     pipe.reloaded(verify=True)
     assert any(h.endswith(".faiss") for h in hashed)  # the opt-in full pass
     man = json.loads((map_dir / "manifest.json").read_text())

@@ -393,11 +393,20 @@ def test_map_info_and_verify(ref512, tmp_path, capsys, caplog):
     assert all(s["recall"]["recall_at_50"] > 0.9 for s in info["submaps"])
     assert main(["map", "info", str(out)]) == 0 and "pq: 2" in capsys.readouterr().out
     assert main(["map", "verify", str(out)]) == 0 and "OK" in capsys.readouterr().out
+    from vlm_vpr_ros.maps.format import PAGE_BYTES, sample_offsets
+
     f = next((out / "submaps").glob("*.f16.npy"))
     data = bytearray(f.read_bytes())
-    data[-3] ^= 0x40
+    data[-3] ^= 0x40  # in a sampled page (the last): refused at open
     f.write_bytes(bytes(data))
-    ReferenceMap.load(out)  # opening checks sizes only: fast at any scale
+    with pytest.raises(MapError, match="does not match the manifest"):
+        ReferenceMap.load(out)
+    data[-3] ^= 0x40
+    sampled = set(sample_offsets(len(data)))
+    off = next(p for p in range(PAGE_BYTES, len(data), PAGE_BYTES) if p not in sampled)
+    data[off + 7] ^= 0x40  # outside the sampled pages: only the full pass sees it
+    f.write_bytes(bytes(data))
+    ReferenceMap.load(out)  # opening reads a few pages per file: fast at any scale
     assert main(["map", "verify", str(out)]) == 2
     assert "checksum mismatch" in caplog.text
 

@@ -15,12 +15,15 @@ from vlm_vpr_ros.priors.base import Prior, PriorResult
 from vlm_vpr_ros.types import Hypothesis
 
 
-def hyp(sigma=120.0, flags=(), prior=True, r95=float("nan")) -> Hypothesis:
-    p = Prior(48.85, 2.35, "fixed") if prior else None
-    pr = PriorResult(p, "fixed") if prior else PriorResult.failure("openai:x", "timeout")
+def hyp(sigma=120.0, flags=(), prior=True, r95=float("nan"), p=0.99, p_without=None,
+        sigma_km=None) -> Hypothesis:
+    pr_ = Prior(48.85, 2.35, "fixed", sigma_km) if prior else None
+    pr = PriorResult(pr_, "fixed") if prior else PriorResult.failure("openai:x", "timeout")
     return Hypothesis(lat=48.8584, lon=2.2945, ref_id="a.jpg", submap="k003",
-                      uncertainty_m=sigma, prior=p, prior_result=pr, flags=tuple(flags),
-                      radius95_m=r95)
+                      uncertainty_m=sigma, prior=pr_, prior_result=pr, flags=tuple(flags),
+                      radius95_m=r95, p_correct=p,
+                      p_correct_without_prior=p if p_without is None else p_without,
+                      verification="verified" if math.isfinite(p) else "")
 
 
 def test_good_fix_is_status_fix_with_enu_covariance():
@@ -38,27 +41,48 @@ def test_good_fix_is_status_fix_with_enu_covariance():
     assert fix_fields(hyp(sigma=60.0, r95=5000.0)).sigma_m == pytest.approx(5000.0 / K95)
 
 
-def test_status_follows_calibrated_quality_not_the_prior():
-    # a confident no-prior match is a fix with its real sigma
-    f = fix_fields(hyp(sigma=30.0, r95=60.0, flags=("no_prior", "global"), prior=False))
-    assert f.flagged and f.status == STATUS_FIX and f.sigma_m < 50.0
-    # a prior-guided guess with a wide posterior is not a fix
+def test_status_rule_needs_verified_p_correct_and_small_sigma():
+    # a verified no-prior match is a fix with its real sigma (flags do not matter)
+    f = fix_fields(hyp(sigma=30.0, r95=40.0, flags=("no_prior", "global"), prior=False))
+    assert f.flagged and f.status == STATUS_FIX and f.sigma_m < 50.0 and f.reason == ""
+    # an unverified answer is never a fix, however small its radius (the lens-cap frame on a
+    # map without calibration, issue 18); nor one below fix_min_p_correct
+    for h, why in ((hyp(sigma=25.0, p=math.nan), "unverified"),
+                   (hyp(sigma=25.0, p=0.9), "p_correct 0.900 < 0.95")):
+        g = fix_fields(h)
+        assert g.status == STATUS_NO_FIX and not g.precise and g.reason == why
+    assert fix_fields(hyp(sigma=25.0, p=0.9), FixPolicy(fix_min_p_correct=0.85)).precise
+    # a wide radius is not a fix even when verified; the threshold is the policy's
     g = fix_fields(hyp(sigma=3000.0, r95=9000.0))
-    assert not g.flagged and g.status == STATUS_NO_FIX and not g.precise
+    assert g.status == STATUS_NO_FIX and g.reason.startswith("sigma 3677 m > 50")
     assert g.sigma_m == pytest.approx(9000.0 / K95)  # honest covariance, no inflation
-    # the threshold is the policy's; fallback_status="fix" publishes imprecise fixes as FIX
+    assert fix_fields(hyp(sigma=3000.0), FixPolicy(fix_max_sigma_m=5000.0)).status == STATUS_FIX
+    # fallback_status="fix" publishes the others as FIX with a least sigma
     h = fix_fields(hyp(sigma=3000.0, r95=9000.0),
                    FixPolicy(fallback_status="fix", fallback_min_sigma_m=1e5,
                              altitude_m=35.0, altitude_sigma_m=10.0))
-    assert h.status == STATUS_FIX and h.sigma_m == 1e5
+    assert h.status == STATUS_FIX and h.sigma_m == 1e5 and not h.precise
     assert h.altitude == 35.0 and h.covariance[8] == 100.0
-    assert fix_fields(hyp(sigma=3000.0), FixPolicy(fix_max_sigma_m=5000.0)).status == STATUS_FIX
     # no match: never a fix, position NaN
     nm = Hypothesis(lat=math.nan, lon=math.nan, ref_id="", submap="", uncertainty_m=2e7,
                     flags=("no_prior", "no_match"), radius95_m=2e7)
     for pol in (FixPolicy(), FixPolicy(fallback_status="fix")):
         x = fix_fields(nm, pol)
         assert x.status == STATUS_NO_FIX and all(math.isfinite(v) for v in x.covariance)
+
+
+def test_prior_resolved_answers_are_fixes_only_with_a_trusted_prior():
+    """Decisive only because the prior removed far look-alikes (p_correct without the prior
+    below the threshold): NO_FIX unless the prior is trusted."""
+    vlm = hyp(sigma=20.0, p=0.99, p_without=0.4)
+    operator = hyp(sigma=20.0, p=0.99, p_without=0.4, sigma_km=2.0)
+    assert fix_fields(vlm).status == STATUS_NO_FIX
+    assert fix_fields(vlm).reason.startswith("prior_resolved")
+    assert fix_fields(vlm, FixPolicy(trust_prior_for_fix=True)).status == STATUS_FIX
+    assert fix_fields(vlm, FixPolicy(trust_operator_prior=True)).status == STATUS_NO_FIX
+    assert fix_fields(operator, FixPolicy(trust_operator_prior=True)).status == STATUS_FIX
+    # decisive without the prior as well: a fix whatever the trust
+    assert fix_fields(hyp(sigma=20.0, p=0.99, p_without=0.97)).status == STATUS_FIX
 
 
 @pytest.mark.parametrize("bad", [math.inf, math.nan, -5.0, 0.0, 1e12])
@@ -78,7 +102,7 @@ def test_navsatfix_message():
     assert msg.status.status == NavSatStatus.STATUS_FIX and msg.status.service == 0
     assert msg.position_covariance_type == NavSatFix.COVARIANCE_TYPE_APPROXIMATED
     assert list(msg.position_covariance)[:5] == [2500.0, 0.0, 0.0, 0.0, 2500.0]
-    flagged = navsat_fix(hyp(sigma=5000.0, flags=("no_prior",), prior=False), 0, "c")
+    flagged = navsat_fix(hyp(sigma=5000.0, flags=("no_prior",), prior=False, p=0.5), 0, "c")
     assert flagged.status.status == NavSatStatus.STATUS_NO_FIX
     assert flagged.latitude == pytest.approx(48.8584)  # the guess is still visible
 

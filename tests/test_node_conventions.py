@@ -41,8 +41,9 @@ def _wait_node_service(client: GraphClient, name: str, timeout_s: float = 30.0) 
 
 def test_parameters_are_described_read_only_and_qos_is_best_effort(demo_map, tmp_path, rgb):
     """Params file + -p (an int given for a float): every parameter comes back through
-    describe_parameters with its description, type, range and read_only; changes are refused;
-    the default image QoS is best effort, so a BEST_EFFORT camera gives fixes."""
+    describe_parameters with its description, type, range and read_only (structural ones) or
+    writable (runtime tuning); a structural change is refused with how to make it; the default
+    image QoS is best effort, so a BEST_EFFORT camera gives fixes."""
     from rcl_interfaces.msg import Parameter, ParameterValue
     from rcl_interfaces.srv import DescribeParameters, GetParameters, SetParameters
     from rclpy.qos import qos_profile_sensor_data
@@ -62,7 +63,7 @@ def test_parameters_are_described_read_only_and_qos_is_best_effort(demo_map, tmp
             for name, spec in PARAMETER_SPECS.items():
                 d = by_name[name]
                 assert d.description == spec.doc and d.type == KINDS[spec.kind], name
-                assert d.read_only, name
+                assert d.read_only == spec.read_only, name
                 if spec.range is not None:
                     rng = d.integer_range if spec.kind == "int" else d.floating_point_range
                     assert len(rng) == 1 and (rng[0].from_value, rng[0].to_value) == \
@@ -75,12 +76,14 @@ def test_parameters_are_described_read_only_and_qos_is_best_effort(demo_map, tmp
                               GetParameters.Request(names=["min_period_s", "qos", "map_dir"]))
             assert got.values[0].type == DOUBLE and got.values[1].string_value == "sensor_data"
             assert got.values[2].string_value == str(demo_map)
+            assert not by_name["top_p"].read_only and by_name["qos"].read_only
             refused = client.call(SetParameters, "/vlm_vpr_node/set_parameters",
                                   SetParameters.Request(parameters=[Parameter(
-                                      name="top_p",
+                                      name="qos_depth",
                                       value=ParameterValue(type=INT, integer_value=7))]))
             assert not refused.results[0].successful
-            assert "read-only" in refused.results[0].reason.lower()
+            assert "cannot change at runtime" in refused.results[0].reason
+            assert "restart the node" in refused.results[0].reason
             qos = client.call(GetParameters, "/vlm_vpr_node/get_parameters", GetParameters.Request(
                 names=["qos_overrides./image.subscription.reliability"]))
             assert qos.values[0].string_value == "best_effort"
@@ -167,6 +170,7 @@ def test_lifecycle_node_through_its_services(demo_map, tmp_path, rgb):
         assert len(client.fixes) == n_fix and len(client.diags) == n_diag  # silent
 
         assert change(Transition.TRANSITION_ACTIVATE), node.log()
+        assert client.wait_subscribed(20.0), node.log()  # the new subscription is matched
         assert client.wait_for(lambda: len(client.fixes) > n_fix, 30.0, tick=tick,
                                period_s=0.1), node.log()
         assert node.log().count("map loaded") == 1  # deactivate kept the map
@@ -251,23 +255,46 @@ def test_min_period_runs_on_sim_time(demo_map, tmp_path, rgb):
         assert min(gaps) >= 19, gaps  # never closer than min_period_s on the sim clock
 
 
-def test_lifecycle_configure_fails_cleanly_on_a_bad_map(tmp_path):
-    """A folder without a valid map: configure fails (the node stays unconfigured, says why,
-    keeps running), as a lifecycle manager expects, instead of crashing."""
+def test_lifecycle_configure_fails_cleanly_on_a_bad_map(tmp_path, demo_map, rgb):
+    """map_dir missing, then a folder without a valid map: configure fails each time (the node
+    stays unconfigured, says why, answers its lifecycle services) as a lifecycle manager
+    expects; once the map is there configure -> activate works; shutdown ends the process."""
+    import shutil
+
     from lifecycle_msgs.msg import Transition
     from lifecycle_msgs.srv import ChangeState, GetState
 
-    empty = tmp_path / "not_a_map"
-    empty.mkdir()
+    target = tmp_path / "maps" / "site"  # does not exist yet
     dom = domain_id()
-    with NodeProcess({"map_dir": str(empty)}, tmp_path / "node.log", dom,
+    with NodeProcess({"map_dir": str(target), "min_period_s": 0.2}, tmp_path / "node.log", dom,
                      lifecycle=True) as node, GraphClient(dom) as client:
+        def change(tid: int) -> bool:
+            r = client.call(ChangeState, "/vlm_vpr_node/change_state",
+                            ChangeState.Request(transition=Transition(id=tid)), 30.0)
+            assert r is not None, node.log()
+            return r.success
+
+        def state() -> str:
+            return client.call(GetState, "/vlm_vpr_node/get_state",
+                               GetState.Request()).current_state.label
+
         _wait_node_service(client, "/vlm_vpr_node/change_state")
-        r = client.call(ChangeState, "/vlm_vpr_node/change_state",
-                        ChangeState.Request(transition=Transition(
-                            id=Transition.TRANSITION_CONFIGURE)), 30.0)
-        assert r is not None and not r.success, node.log()
-        state = client.call(GetState, "/vlm_vpr_node/get_state", GetState.Request())
-        assert state.current_state.label == "unconfigured"
-        assert "configure failed" in node.log() and "Traceback" not in node.log()
-        assert node.alive()
+        assert not change(Transition.TRANSITION_CONFIGURE) and state() == "unconfigured"
+        assert "does not exist or is not a folder" in node.log()
+        target.mkdir(parents=True)  # a folder without a map
+        assert not change(Transition.TRANSITION_CONFIGURE) and state() == "unconfigured"
+        assert node.log().count("configure failed") == 2 and "Traceback" not in node.log()
+        target.rmdir()
+        shutil.copytree(demo_map, target)  # the map arrives (e.g. synced after boot)
+        assert change(Transition.TRANSITION_CONFIGURE) and state() == "inactive"
+        assert change(Transition.TRANSITION_ACTIVATE) and state() == "active"
+        assert client.wait_subscribed(20.0), node.log()
+        stamp = [time.time_ns()]
+
+        def tick():
+            stamp[0] += 1
+            client.image_pub.publish(image_msg(rgb, stamp[0]))
+        assert client.wait_for(lambda: client.fixes, 30.0, tick=tick, period_s=0.1), node.log()
+        assert change(Transition.TRANSITION_ACTIVE_SHUTDOWN)  # answered, then the process ends
+        node.proc.wait(20.0)
+    assert node.proc.returncode == 0 and "shut down: the process ends" in node.log()

@@ -82,7 +82,10 @@ def test_diagnostics_report_the_query(graph_a, rgb):
     assert diag["prior_source"] == "fixed" and diag["prior_ok"] == "true"
     assert diag["submap"] and int(diag["candidates"]) >= 1
     assert diag["fusion"] == "posterior" and diag["calibration"]  # one image per place: none
-    assert 25.0 <= float(diag["radius68_m"]) <= float(diag["radius95_m"])
+    # a verified fix (the query is a mapped image): radii of the 25 m place, the published sigma
+    assert diag["status"] == "STATUS_FIX" and diag["verification"] == "verified"
+    assert 0.0 < float(diag["radius68_m"]) <= float(diag["radius95_m"]) <= 25.0
+    assert float(diag["p_correct"]) >= 0.95 and float(diag["last_sigma_m"]) < 25.0
     for key in ("retrieval_ms", "rerank_ms", "descriptor_ms", "prior_latency_ms",
                 "frames_received", "frames_processed", "frames_dropped"):
         assert key in diag and float(diag[key]) >= 0

@@ -56,10 +56,14 @@ def test_colcon_build_installs_ros2_run_layout(tmp_path):
 ROSDEP_KEYS = {"numpy": "python3-numpy", "cv2": "python3-opencv", "yaml": "python3-yaml",
                "sklearn": "python3-sklearn", "matplotlib": "python3-matplotlib",
                "tqdm": "python3-tqdm", "faiss": "python3-faiss", "torch": "python3-torch",
+               "PIL": "python3-pil",
                "rosbags": "python3-rosbags-pip", "mcap": "mcap-ros2-support",
+               "pyproj": "python3-pyproj",
                "reverse_geocoder": None,
                # optional (describe / build-map --engine ray), pip only: requirements.txt
-               "ray": None, "pyarrow": None}
+               "ray": None, "pyarrow": None,
+               # verification (docs/verification.md): learned features, BLAS threads; pip
+               "kornia": None, "threadpoolctl": None}
 #: ROS packages (declared by their own name)
 ROS_PACKAGES = {"rclpy", "rcl_interfaces", "lifecycle_msgs", "rosgraph_msgs", "std_msgs",
                 "sensor_msgs", "geometry_msgs", "diagnostic_msgs", "std_srvs",

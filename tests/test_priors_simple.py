@@ -26,11 +26,13 @@ def test_fixed_prior_and_validation():
 
 def test_recorded_lookup_by_name_and_basename(tmp_path):
     csv = tmp_path / "p.csv"
-    csv.write_text("file,lat,lon\nimgs/a.jpg,10.5,-20.25\nb.jpg,nan,3\nc.jpg,1,x\n")
+    csv.write_text("file,lat,lon\nimgs/a.jpg,10.5,-20.25\nb.jpg,nan,3\nc.jpg,1,x\n"
+                   "d.jpg,3_9.5591,1\n")
     p = create_prior_provider("recorded", {"path": str(csv)})
     assert p.get(PriorQuery(key="imgs/a.jpg")).prior.lat == 10.5
     assert p.get(PriorQuery(key="other/dir/a.jpg")).prior.lon == -20.25
     assert p.get(PriorQuery(key="b.jpg")).reason == "not_recorded"  # NaN row = no prior
+    assert p.get(PriorQuery(key="d.jpg")).reason == "not_recorded"  # "3_9.5591" is no number
     assert p.get(PriorQuery(key="zzz.jpg")).reason == "not_recorded"
     assert p.get(PriorQuery()).reason == "no_key"
 

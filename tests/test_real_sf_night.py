@@ -52,15 +52,12 @@ CITY_CENTRE = (37.7749, -122.4194)  # a typical VLM answer for a San Francisco p
 
 
 @pytest.fixture(scope="module")
-def sf_queries(sf):
+def sf_queries(sf_described):
     """Descriptors and ground truth of the 34 night queries (computed once)."""
     import numpy as np
 
-    root, map_dir = sf
-    pipe = LocalizationPipeline.open(map_dir)
-    queries = read_coords_csv(root / "queries.csv")
-    desc = np.stack([pipe.describe(load_image(root / f)) for f, _, _ in queries])
-    return desc, np.array([[la, lo] for _, la, lo in queries])
+    described, truth = sf_described
+    return np.stack([q.desc for q in described]), truth
 
 
 def _offset(lat, lon, km, bearing):
@@ -140,9 +137,9 @@ def test_sf_night_fusion_never_loses_to_vpr_and_is_calibrated(sf, sf_queries):
 
 @pytest.fixture(scope="module")
 def twin(sf, sf_queries, tmp_path_factory):
-    """(twin map, SF -> Sydney shift, priors 0-25 km off the queries' truth): the SF database
-    twice, true coordinates + look-alike copies (descriptors perturbed far below their spread)
-    shifted to Sydney."""
+    """(twin map, SF map, SF -> Sydney shift, priors 0-25 km off the queries' truth): the SF
+    database twice, true coordinates + look-alike copies (descriptors perturbed far below their
+    spread) shifted to Sydney."""
     import math
 
     import numpy as np
@@ -168,13 +165,13 @@ def twin(sf, sf_queries, tmp_path_factory):
                           np.concatenate([c0, c0 + np.array(shift)]))
     priors = [_offset(la, lo, rng.uniform(0.0, 25.0), rng.uniform(0, 2 * math.pi))
               for la, lo in sf_queries[1]]
-    return ReferenceMap.load(out), shift, priors
+    return ReferenceMap.load(out), base, shift, priors
 
 
-def test_twin_city_prior_resolves_the_look_alikes(sf, sf_queries, twin):
+def test_twin_city_prior_resolves_the_look_alikes(sf, sf_queries, sf_described, twin):
     """VPR alone cannot tell the twins apart; a prior up to 25 km off must."""
     desc, truth = sf_queries
-    twin, shift, priors = twin
+    twin, base, shift, priors = twin
     n = len(desc)
     vpr_hits, _, _, vpr_far = _run(twin, desc, truth, [None] * n, fold=shift, fusion="paper")
     hits, c68, c95, far = _run(twin, desc, truth, priors, fold=shift)
@@ -190,6 +187,48 @@ def test_twin_city_prior_resolves_the_look_alikes(sf, sf_queries, twin):
     assert vpr_far >= 11
     assert far <= 1  # the prior resolves the twin
     assert hits >= vpr_hits - 1
+    _twin_verified(twin, base, sf_described, priors, hits, shift)
+
+
+def _twin_verified(twin, base, sf_described, priors, fused_hits, shift):
+    """The twin map with its features (the SF references' own, copied to the look-alikes) and
+    its own leave-one-out calibration: a verified fix never lands on the wrong continent, and
+    with a prior on the wrong continent there is none (the answer is prior_resolved)."""
+    from vlm_vpr_ros.localization.verification.build import (ReferenceExtractor, calibrate_map,
+                                                             store_features)
+    from vlm_vpr_ros.maps.features import FeatureStore
+    from vlm_vpr_ros.maps.reference_map import ReferenceMap
+
+    store = FeatureStore.open(base.path, base.manifest)
+    where = {i: (s.id, j) for s in base.submaps for j, i in enumerate(s.ids)}
+    sf_pipe = LocalizationPipeline.open(base.path)
+    store_features(twin, lambda i: store.get(*where[i.removeprefix("twin/")]),
+                   ReferenceExtractor(sf_pipe.descriptor, "sift"))
+    calibrate_map(twin, max_queries=150)
+    pipe = LocalizationPipeline.open(twin.path)
+    described, truth = sf_described
+    n = len(truth)
+    sydney = [(la + shift[0], (lo + shift[1] + 180.0) % 360.0 - 180.0)  # the wrong continent
+              for la, lo in priors]
+    rows = {}
+    for name, pri in (("priors 0-25 km off", priors), ("priors on the wrong continent",
+                                                        sydney)):
+        res = _verified(pipe, described, truth, pri)
+        wrong = sum(1 for r in res if r[1] == "fix" and r[5] < 0)
+        fixes = sum(1 for r in res if r[1] == "fix")
+        hits = 0
+        for (la, lo), r in zip(truth, res):  # a look-alike answer folded back (as _run)
+            fold = r[5] < 0
+            hits += haversine_km(la, lo, r[5] - shift[0] * fold, r[6] - shift[1] * fold) \
+                * 1000 <= 25
+        rows[name] = (hits, fixes, wrong)
+        print(f"  verified, {name}: R@1 {hits}/{n} (fused today {fused_hits}), fixes "
+              f"{fixes}, on the wrong continent {wrong} (target 0)")
+        assert wrong == 0
+    assert rows["priors 0-25 km off"][0] >= fused_hits - 1
+    assert rows["priors on the wrong continent"][1] == 0
+    assert ReferenceMap.load(twin.path).manifest["local_features"]["n_keypoints"] == \
+        2 * base.manifest["local_features"]["n_keypoints"]
 
 
 def test_one_pass_retrieval_answers_as_two_searches(sf, sf_queries, twin):
@@ -217,3 +256,77 @@ def test_one_pass_retrieval_answers_as_two_searches(sf, sf_queries, twin):
             merged += assert_same_answers(Localizer(ref_map, cfg),
                                           TwoSearchLocalizer(ref_map, cfg), desc, priors)
     assert merged >= 40  # the tight priors' regions are a few submaps: the merge ran
+
+
+# -- verified fixes (issue 18, docs/verification.md) ----------------------------------------------
+def _verified(pipe, queries, truth, priors, cut=17):
+    """Run the full pipeline (retrieval, fusion, verification, status) on precomputed query
+    descriptions; per-answer (error m, status, sigma m, p_correct, covered by r68) and R@1."""
+    from vlm_vpr_ros.localization.verification.status import horizontal_sigma
+    from vlm_vpr_ros.priors.base import Prior, PriorResult
+
+    out = []
+    for q, (la, lo), p in zip(queries, truth, priors):
+        pr = None if p is None else PriorResult(Prior(p[0], p[1], "test"), "test")
+        h = pipe.localize_descriptor(q.desc, pr, q.local)
+        e = haversine_km(la, lo, h.lat, h.lon) * 1000
+        out.append((e, h.status, horizontal_sigma(h), h.p_correct, e <= h.uncertainty_m,
+                    h.lat, h.lon))
+    return out
+
+
+@pytest.fixture(scope="module")
+def sf_described(sf):
+    """The 34 night queries through describe_query (global descriptor + SIFT, one pass)."""
+    import numpy as np
+
+    root, map_dir = sf
+    pipe = LocalizationPipeline.open(map_dir)
+    queries = read_coords_csv(root / "queries.csv")
+    return ([pipe.describe_query(load_image(root / f)) for f, _, _ in queries],
+            np.array([[la, lo] for _, la, lo in queries]))
+
+
+def test_sf_night_verified_fixes_are_right_and_radii_honest(sf, sf_described):
+    """Targets of issue 18 on the 34 night queries; p_correct calibrated by leave-one-out on
+    the 332 references only (no threshold chosen on these queries)."""
+    import math
+
+    import numpy as np
+
+    root, map_dir = sf
+    described, truth = sf_described
+    pipe = LocalizationPipeline.open(map_dir)
+    n = len(truth)
+    rng = np.random.default_rng(0)
+    near = [_offset(la, lo, rng.uniform(0.5, 2.0), rng.uniform(0, 2 * math.pi))
+            for la, lo in truth]
+    settings = {"no prior": [None] * n, "city-centre prior": [CITY_CENTRE] * n,
+                "prior 0.5-2 km off": near}
+    print(f"\nsf_night verified fixes ({n} night queries; halves = queries 1-17 / 18-34)")
+    pooled = []
+    for name, pri in settings.items():
+        res = _verified(pipe, described, truth, pri)
+        today = _run(pipe.map, [q.desc for q in described], truth, pri)[0]
+        fixes = [r[0] for r in res if r[1] == "fix"]
+        halves = [sum(1 for r in res[a:b] if r[1] == "fix") for a, b in ((0, 17), (17, n))]
+        r1 = sum(r[0] <= 25 for r in res)
+        print(f"  {name:<20} R@1 {r1}/{n} (today {today}); fixes {len(fixes)}/{n} "
+              f"(halves {halves[0]} + {halves[1]}; target >= 8), fix errors m "
+              f"{sorted(round(e) for e in fixes)} (target all <= 50)")
+        assert all(e <= 50 for e in fixes) and len(fixes) >= 8
+        assert r1 >= today
+        pooled += res
+    cov = 100 * sum(r[4] for r in pooled) / len(pooled)
+    fix_sigma = float(np.median([r[2] for r in pooled if r[1] == "fix"]))
+    bad_sigma = float(np.median([r[2] for r in pooled if r[1] != "fix" and r[0] > 1000]))
+    print(f"  68 % radius covers {cov:.1f}% of {len(pooled)} answers (target 55-85); median "
+          f"sigma: fixes {fix_sigma:.1f} m, NO_FIX answers wrong by > 1 km {bad_sigma:.0f} m "
+          f"(ratio {bad_sigma / fix_sigma:.0f}x, target >= 10x)")
+    assert 55.0 <= cov <= 85.0 and bad_sigma >= 10 * fix_sigma
+    # featureless frames on this map: never a fix
+    from test_verification_maps import featureless_frames
+
+    for name, frame in featureless_frames().items():
+        h = pipe.localize_image(frame)
+        assert h.status == "no_fix", (name, h.status_reason)

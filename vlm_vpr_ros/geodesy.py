@@ -79,3 +79,15 @@ def enu_offset_m(lat0: float, lon0: float, lat: float, lon: float) -> tuple[floa
     east = math.radians(lon - lon0) * math.cos(math.radians(lat0)) * r
     north = math.radians(lat - lat0) * r
     return east, north
+
+
+def destination(lat: float, lon: float, distance_km: float,
+                bearing_deg: float) -> tuple[float, float]:
+    """The point ``distance_km`` from (lat, lon) along the great circle leaving at
+    ``bearing_deg`` (clockwise from north); longitude wrapped to [-180, 180)."""
+    d = distance_km / EARTH_RADIUS_KM
+    la, lo, b = math.radians(lat), math.radians(lon), math.radians(bearing_deg)
+    la2 = math.asin(math.sin(la) * math.cos(d) + math.cos(la) * math.sin(d) * math.cos(b))
+    lo2 = lo + math.atan2(math.sin(b) * math.sin(d) * math.cos(la),
+                          math.cos(d) - math.sin(la) * math.sin(la2))
+    return math.degrees(la2), (math.degrees(lo2) + 540.0) % 360.0 - 180.0

@@ -19,6 +19,7 @@ from __future__ import annotations
 import logging
 import re
 import threading
+from typing import Any
 
 MASK = "***"
 _lock = threading.Lock()
@@ -28,7 +29,10 @@ _URL_USERINFO = re.compile(r"(?i)\b([a-z][a-z0-9+.-]*://)[^/@\s'\"]+@")
 _HEADER = re.compile(r"(?i)\b(authorization|proxy-authorization|x-api-key|api-key)"
                      r"(['\"]?\s*[:=]\s*['\"]?)(?:bearer\s+|basic\s+)?[^\s'\",}]+")
 _BEARER = re.compile(r"(?i)\b(bearer\s+)[A-Za-z0-9._~+/=-]{6,}")
-_NAMED = re.compile(r"(?i)\b([a-z_]*(?:api_?key|secret|token|password|passwd)[a-z_]*)"
+# a ``name: value`` pair whose name says secret; not a ``$NAME`` / ``${NAME}`` reference to a
+# variable, whose ":" starts ordinary prose ("no key in $OPENAI_API_KEY: sending ...")
+_NAMED = re.compile(r"(?i)(?<![$\w])(?<!\$\{)"
+                    r"([a-z_]*(?:api_?key|secret|token(?!s)|password|passwd)[a-z_]*)"
                     r"(['\"]?\s*[:=]\s*['\"]?)(?!\$|\{)([^\s'\",}&]+)")
 _SHAPED = re.compile(r"\b(?:sk-[A-Za-z0-9_-]{8,}|AIza[0-9A-Za-z_-]{20,}|gh[pousr]_[A-Za-z0-9]{20,}"
                      r"|hf_[A-Za-z0-9]{20,}|xox[abpr]-[A-Za-z0-9-]{10,})")
@@ -70,6 +74,19 @@ def redact(text: object) -> str:
     s = _NAMED.sub(lambda m: m.group(0) if m.group(1).lower().endswith("_env")
                    else f"{m.group(1)}{m.group(2)}{MASK}", s)
     return _SHAPED.sub(MASK, s)
+
+
+def redact_obj(obj: Any) -> Any:
+    """A copy of a JSON-like value with every string (keys included) passed through
+    :func:`redact`: for printing structures as JSON, where escaping would hide a secret from a
+    redaction of the dumped text."""
+    if isinstance(obj, str):
+        return redact(obj)
+    if isinstance(obj, dict):
+        return {redact_obj(k): redact_obj(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [redact_obj(v) for v in obj]
+    return obj
 
 
 class RedactingFormatter(logging.Formatter):

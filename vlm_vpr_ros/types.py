@@ -6,7 +6,38 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
+
 from vlm_vpr_ros.priors.base import Prior, PriorResult
+
+
+@dataclass
+class LocalFeatures:
+    """Local features of one image.
+
+    ``keypoints`` (n, 2) float32 are pixel coordinates in the *extraction frame* (the image
+    resized so its longer side is at most the extractor's ``max_side``); ``scale`` maps them
+    back to the original image (original = keypoint * scale). ``descriptors`` (n, d) keep the
+    extractor's storage dtype (uint8 for SIFT, float16 for learned ones); rows are sorted by
+    detector response, strongest first, so the first k rows are the k strongest keypoints.
+    """
+
+    keypoints: np.ndarray
+    descriptors: np.ndarray
+    size: tuple[int, int]  # (width, height) of the extraction frame
+    scale: float = 1.0
+    extra: dict[str, np.ndarray] | None = None  # e.g. detector scores a matcher may use
+
+    def __len__(self) -> int:
+        return int(len(self.keypoints))
+
+    def head(self, k: int | None) -> "LocalFeatures":
+        """The ``k`` strongest keypoints (all when ``k`` is None or larger)."""
+        if k is None or k >= len(self):
+            return self
+        extra = {n: v[:k] for n, v in (self.extra or {}).items()} or None
+        return LocalFeatures(self.keypoints[:k], self.descriptors[:k], self.size, self.scale,
+                             extra)
 
 
 @dataclass(frozen=True)
@@ -20,6 +51,8 @@ class Candidate:
     submap: str
     prior_km: float | None = None  # haversine distance to the prior (None without prior)
     posterior: float | None = None  # posterior weight after fusion (docs/fusion.md)
+    row: int = -1  # row of the reference in its submap (-1: unknown)
+    inliers: int = -1  # geometric inliers with the query (-1: not verified)
 
 
 @dataclass
@@ -39,6 +72,17 @@ class Hypothesis:
     radius95_m: float = math.nan  # calibrated 95 % radius (m); NaN: not computed
     confidence: float = math.nan  # posterior mass within the vote radius of the estimate
     fusion: str = ""  # fusion mode that produced the hypothesis ("posterior" / "paper")
+    #: verification (docs/verification.md): probability of being within the place radius,
+    #: with prior-gated competitors and without; NaN when not verified or uncalibrated
+    p_correct: float = math.nan
+    p_correct_without_prior: float = math.nan
+    inliers: int = -1  # the answer's geometric inliers (-1: not verified)
+    inlier_ratio: float = math.nan  # verified evidence score (inlier ratio)
+    verification: str = ""  # "verified" or "unverified: <why>" ("" = not attempted)
+    status: str = ""  # "fix" / "no_fix" under the pipeline's status policy ("" = not set)
+    status_reason: str = ""  # why not a fix
+    #: inlier matches (query row, reference row) of the verified candidates, in order
+    matches: list[np.ndarray] = field(default_factory=list, repr=False)
 
     @property
     def flagged(self) -> bool:
@@ -56,6 +100,8 @@ class Hypothesis:
             "prior_lon": "" if p is None else f"{p.lon:.6f}",
             "prior_source": (p.source if p else (pr.source if pr else "none")),
             "prior_reason": "" if pr is None else pr.reason,
+            # how a VLM answer was read: structured, text, text_fallback ("" for no answer)
+            "prior_parse": "" if pr is None else str(pr.extra.get("parse_path") or ""),
             "submap": self.submap,
             "ref_id": self.ref_id,
             "uncertainty_m": f"{self.uncertainty_m:.1f}",
@@ -64,8 +110,18 @@ class Hypothesis:
             "fusion": self.fusion,
             "n_candidates": len(self.candidates),
             "flags": "|".join(self.flags),
+            "status": self.status,
+            "p_correct": "" if math.isnan(self.p_correct) else f"{self.p_correct:.4f}",
+            "inliers": "" if self.inliers < 0 else str(self.inliers),
+            "inlier_ratio": "" if math.isnan(self.inlier_ratio) else f"{self.inlier_ratio:.3f}",
+            "top_ids": "|".join(c.ref_id for c in self.candidates[:TOP_IN_RESULTS]),
+            "top_positions": "|".join(f"{c.lat:.7f} {c.lon:.7f}"
+                                      for c in self.candidates[:TOP_IN_RESULTS]),
         }
 
+
+#: candidates listed in a results row (recall@1/5/10/20 in ``vlm-vpr evaluate``)
+TOP_IN_RESULTS = 20
 
 #: flags that mark a hypothesis as a fallback rather than the full method
 FALLBACK_FLAGS = frozenset({

@@ -98,3 +98,15 @@ def queries(demo_data, tmp_path) -> Path:
     q = tmp_path / "queries.csv"
     q.write_text("file\n" + "\n".join(names) + "\n")
     return q
+
+
+def copy_refs(demo_data: Path, folder: Path, n: int) -> list[tuple[str, float, float]]:
+    """``n`` demo images copied into ``folder`` as ``new_<k>.jpg`` (references a map of the
+    demo images does not hold); returns their (file, lat, lon) rows."""
+    folder.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for k, line in enumerate((demo_data / "coords.csv").read_text().splitlines()[1:n + 1]):
+        f, lat, lon = line.split(",")[:3]
+        shutil.copy(demo_data / "images" / f, folder / f"new_{k}.jpg")
+        rows.append((f"new_{k}.jpg", float(lat), float(lon)))
+    return rows

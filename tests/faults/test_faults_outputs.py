@@ -256,11 +256,11 @@ def test_query_exception_is_a_flagged_row(cli, demo_map, demo_data, queries, tmp
     real = LocalizationPipeline.localize_descriptor
     calls = {"n": 0}
 
-    def flaky(self, desc, prior=None):
+    def flaky(self, desc, prior=None, local=None):
         calls["n"] += 1
         if calls["n"] == 3:  # what an empty candidate list did in the localizer
             raise IndexError("index 0 is out of bounds for axis 0 with size 0")
-        return real(self, desc, prior)
+        return real(self, desc, prior, local)
 
     monkeypatch.setattr(LocalizationPipeline, "localize_descriptor", flaky)
     rc, out, _ = cli("localize", "--map", demo_map, "--images", demo_data / "images",

@@ -31,8 +31,9 @@ log = logging.getLogger(__name__)
 #: ``stamp`` is ``sec.nanosec`` and ``stamp_ns`` the integer nanoseconds: both exact, to join on
 FRAME_FIELDS = ["index", "stamp", "stamp_ns", "key", "gt_lat", "gt_lon", "gt_gap_s", "lat",
                 "lon", "error_km", "prior_lat", "prior_lon", "prior_source", "prior_reason",
-                "submap", "ref_id", "uncertainty_m", "radius95_m", "fusion", "n_candidates",
-                "flags", "descriptor_ms", "retrieval_ms", "rerank_ms", "prior_latency_s"]
+                 "prior_parse", "submap", "ref_id", "uncertainty_m", "radius95_m", "fusion",
+                 "n_candidates", "flags", "status", "p_correct", "inliers", "descriptor_ms",
+                 "retrieval_ms", "rerank_ms", "verify_ms", "prior_latency_s"]
 EST_TOPIC, PRIOR_TOPIC, GT_TOPIC = "/vlm_vpr/fix", "/vlm_vpr/prior", "/vlm_vpr/ground_truth"
 FRAME_ID = "vlm_vpr"
 
@@ -206,9 +207,9 @@ def _write_estimates(path: Path, items: list[tuple]) -> Path:
     from msg_adapters.navsat import navsat_fix
 
     from vlm_vpr_ros.bags.messages import NAVSATFIX, navsatfix_msg
-    from vlm_vpr_ros.bags.writer import Rosbag2McapWriter
+    from vlm_vpr_ros.bags.writer import BagWriter
 
-    with Rosbag2McapWriter(path, overwrite=True) as bag:
+    with BagWriter(path, overwrite=True) as bag:
         for topic in (EST_TOPIC, PRIOR_TOPIC, GT_TOPIC):
             bag.add_topic(topic, NAVSATFIX)
         for t, hyp, truth in items:

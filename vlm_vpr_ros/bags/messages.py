@@ -1,16 +1,37 @@
-"""Building the ROS messages the bags carry (rclpy message objects)."""
+"""Building the ROS messages the bags carry (rclpy message objects), and finding a type's
+rclpy class by its rosbag2 name."""
 
 from __future__ import annotations
 
+import importlib
 import math
+import re
 from typing import Any
 
 import numpy as np
+
+from vlm_vpr_ros.errors import BagError
 
 IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED = "sensor_msgs/msg/CompressedImage"
 NAVSATFIX = "sensor_msgs/msg/NavSatFix"
 IMAGE_TYPES = (IMAGE, COMPRESSED)
+_TYPE_NAME = re.compile(r"^([a-zA-Z][a-zA-Z0-9_]*)/(?:([a-zA-Z][a-zA-Z0-9_]*)/)?"
+                        r"([a-zA-Z][a-zA-Z0-9_]*)$")
+
+
+def message_class(type_name: str) -> Any:
+    """The rclpy (rosidl Python) class of ``type_name`` (``sensor_msgs/msg/Image`` or
+    ``sensor_msgs/Image``); BagError if its package is not installed."""
+    m = _TYPE_NAME.match(type_name.strip())
+    if not m:
+        raise BagError(f"not a ROS 2 message type name: {type_name!r}")
+    pkg, ns, name = m.group(1), m.group(2) or "msg", m.group(3)
+    try:
+        return getattr(importlib.import_module(f"{pkg}.{ns}"), name)
+    except (ImportError, AttributeError) as exc:
+        raise BagError(f"message type {type_name} is not available in this Python environment "
+                       f"(install or source the '{pkg}' interface package): {exc}") from None
 
 
 def split_stamp(t_ns: int) -> tuple[int, int]:

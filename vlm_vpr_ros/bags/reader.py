@@ -20,7 +20,7 @@ from typing import Any, Iterable, Iterator
 
 import yaml
 
-from vlm_vpr_ros.bags.msgdefs import message_class, parse_qos
+from vlm_vpr_ros.bags.messages import message_class
 from vlm_vpr_ros.errors import BagError
 
 log = logging.getLogger(__name__)
@@ -163,6 +163,20 @@ def open_bag(path: str | os.PathLike[str]) -> BagReader:
     return bag
 
 
+def parse_qos(text_or_list: Any) -> list[dict]:
+    """Offered QoS profiles from bag metadata (a YAML string, or a list in metadata version 9);
+    malformed input gives an empty list (callers then use defaults)."""
+    if isinstance(text_or_list, list):
+        return [p for p in text_or_list if isinstance(p, dict)]
+    if not text_or_list:
+        return []
+    try:
+        data = yaml.safe_load(text_or_list)
+    except yaml.YAMLError:
+        return []
+    return [p for p in data if isinstance(p, dict)] if isinstance(data, list) else []
+
+
 def _add_topic(bag: BagReader, name: str, type_: str, count: int | None, fmt: str = "cdr",
                qos: Any = None) -> None:
     old = bag.topics.get(name)
@@ -179,9 +193,15 @@ _MCAP_ERRORS: tuple[type[BaseException], ...] = (ValueError, struct.error, EOFEr
 
 
 def _mcap_errors() -> tuple[type[BaseException], ...]:
+    """What reading damaged MCAP data raises: mcap's own errors, struct/zlib/OS errors, and the
+    chunk decompressors' (zstandard's ``ZstdError``; lz4 raises ``RuntimeError``)."""
+    from mcap import stream_reader
     from mcap.exceptions import McapError
 
-    return (McapError,) + _MCAP_ERRORS
+    zstd = getattr(stream_reader, "zstandard", None)
+    lz4 = getattr(stream_reader, "lz4", None)
+    return ((McapError,) + _MCAP_ERRORS + ((zstd.ZstdError,) if zstd is not None else ())
+            + ((RuntimeError,) if lz4 is not None else ()))
 
 
 def _summary(f: Path) -> Any:

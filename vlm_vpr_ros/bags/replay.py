@@ -18,7 +18,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
-from vlm_vpr_ros.bags.msgdefs import message_class
+from vlm_vpr_ros.bags.messages import message_class
 from vlm_vpr_ros.bags.reader import BagReader, TopicInfo
 from vlm_vpr_ros.errors import BagError, ConfigError
 

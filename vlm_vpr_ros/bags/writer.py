@@ -1,103 +1,124 @@
-"""Writing rosbag2-compatible MCAP bags (``vlm-vpr bag make`` and the evaluation's results bag).
+"""Writing rosbag2 bags (``vlm-vpr bag make``, the evaluation's results bag), with rosbags.
 
-A bag is a folder ``BAG/`` holding ``BAG_0.mcap`` and rosbag2's ``metadata.yaml`` (version 9,
-as Jazzy writes it: QoS profiles as a list, ``type_description_hash`` per topic, ``ros_distro``).
-The MCAP uses the ``ros2`` profile: ``cdr`` messages serialized by rclpy, ``ros2msg`` schemas with
-the full concatenated definition, channel metadata ``offered_qos_profiles`` + ``topic_type_hash``,
-and the ``rosbag2`` metadata record. The folder is written under a temporary name and renamed
-into place when complete, so a half-written bag never appears under the final name.
+The format is rosbags' ``rosbag2.Writer``: a folder ``BAG/`` holding ``BAG.mcap`` (or
+``BAG.db3``) and ``metadata.yaml`` version 9 (QoS profiles as a list, ``type_description_hash``
+per topic, ``custom_data``); ``ros2msg`` schemas and RIHS01 type hashes come from rosbags'
+ROS 2 Jazzy type store. What this module adds around it:
+
+* **stage, then rename**: the bag is written in ``.BAG.tmp<pid>/BAG`` beside the target, its
+  files and folder are ``fsync``-ed, and only then is it renamed to ``BAG`` (an old bag there is
+  replaced last), so a half-written bag never appears under the target name;
+* messages as rclpy objects (serialized with ``rclpy.serialization``) or as CDR bytes;
+* one error type: :class:`~vlm_vpr_ros.errors.BagError` (OS errors: ``OutputError``).
 """
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
 import shutil
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import yaml
+from rosbags.rosbag2 import WriterError
 
 from vlm_vpr_ros import __version__
-from vlm_vpr_ros.bags.msgdefs import full_definition, qos_profile, qos_yaml, type_hash
-from vlm_vpr_ros.errors import BagError
+from vlm_vpr_ros.errors import BagError, OutputError
+from vlm_vpr_ros.files.atomic import describe_os_error, fsync_tree
 from vlm_vpr_ros.files.csvio import write_csv_atomic
 
 log = logging.getLogger(__name__)
 
-COMPRESSIONS = ("none", "zstd", "lz4")
+STORAGES = ("mcap", "sqlite3")
+#: chunk compression of MCAP bags (rosbags writes zstd chunks; sqlite3 bags are uncompressed)
+COMPRESSIONS = ("none", "zstd")
 METADATA_VERSION = 9
+#: rmw's "infinite" duration as rosbag2 stores it in QoS profiles
+_INFINITE = (9223372036, 854775807)
 
 
-@dataclass
-class _Topic:
-    name: str
-    type: str
-    channel_id: int
-    qos: list[dict]
-    hash: str
-    count: int = 0
-    sequence: int = 0
+@functools.lru_cache(maxsize=1)
+def typestore() -> Any:
+    """rosbags' type store of ROS 2 Jazzy (message definitions and RIHS01 hashes)."""
+    from rosbags.typesys import Stores, get_typestore
+
+    return get_typestore(Stores.ROS2_JAZZY)
 
 
-@dataclass
-class _Stats:
-    start: int | None = None
-    end: int | None = None
-    count: int = 0
-    topics: dict[str, _Topic] = field(default_factory=dict)
+def qos_profile(depth: int = 10, reliable: bool = True) -> Any:
+    """A publisher QoS profile as rosbag2 records it in ``offered_qos_profiles``."""
+    from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness,
+                                    QosReliability, QosTime)
+
+    forever = QosTime(*_INFINITE)
+    return Qos(history=QosHistory.KEEP_LAST, depth=int(depth),
+               reliability=QosReliability.RELIABLE if reliable else QosReliability.BEST_EFFORT,
+               durability=QosDurability.VOLATILE, deadline=forever, lifespan=forever,
+               liveliness=QosLiveliness.AUTOMATIC, liveliness_lease_duration=forever,
+               avoid_ros_namespace_conventions=False)
 
 
-class Rosbag2McapWriter:
-    """Write a rosbag2 MCAP bag folder; use as a context manager (aborts cleanly on error)."""
+class BagWriter:
+    """Write a rosbag2 bag folder; use as a context manager (aborts cleanly on error).
 
-    def __init__(self, path: str | os.PathLike[str], compression: str = "none",
-                 overwrite: bool = False, chunk_size: int = 1 << 20) -> None:
-        from mcap.writer import CompressionType, Writer
+    ``storage``: "mcap" (default) or "sqlite3"; ``compression``: "none" or "zstd" (MCAP
+    chunks). The bag appears at ``path`` only when :meth:`close` has finished it."""
+
+    def __init__(self, path: str | os.PathLike[str], storage: str = "mcap",
+                 compression: str = "none", overwrite: bool = False) -> None:
+        from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
 
         from vlm_vpr_ros.config import choose
 
-        kind = choose(compression, dict(zip(COMPRESSIONS, ("NONE", "ZSTD", "LZ4"))),
-                      "MCAP chunk compression")
+        plugin = choose(storage, dict(zip(STORAGES, (StoragePlugin.MCAP,
+                                                     StoragePlugin.SQLITE3))), "bag storage")
+        zstd = choose(compression, dict(zip(COMPRESSIONS, (False, True))), "bag compression")
+        if zstd and storage != "mcap":
+            raise BagError(f"compression {compression!r} needs --storage mcap (sqlite3 bags "
+                           "are written uncompressed)")
         self.path = Path(path)
         if self.path.exists() and not overwrite:
             raise BagError(f"{self.path} already exists (use --overwrite to replace it)")
-        self._tmp = self.path.with_name(f".{self.path.name}.tmp{os.getpid()}")
-        if self._tmp.exists():
-            shutil.rmtree(self._tmp)
-        self._tmp.mkdir(parents=True)
-        self.file_name = f"{self.path.name}_0.mcap"
-        self._fh = open(self._tmp / self.file_name, "wb")
-        self._mcap = Writer(self._fh, chunk_size=chunk_size,
-                            compression=getattr(CompressionType, kind))
-        self._mcap.start(profile="ros2", library=f"vlm_vpr_ros {__version__} (mcap-python)")
-        self._stats = _Stats()
-        self._schemas: dict[str, int] = {}
+        self._stage = self.path.with_name(f".{self.path.name}.tmp{os.getpid()}")
         self._closed = False
+        self._topics: dict[str, Any] = {}
+        self.count = 0
+        try:
+            if self._stage.exists():
+                shutil.rmtree(self._stage)
+            self._stage.mkdir(parents=True)
+            self._bag = Writer(self._stage / self.path.name, version=METADATA_VERSION,
+                               storage_plugin=plugin)
+            if zstd:
+                self._bag.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+            self._bag.set_custom_data("writer", f"vlm_vpr_ros {__version__}")
+            self._bag.open()
+        except OSError as exc:
+            shutil.rmtree(self._stage, ignore_errors=True)
+            raise OutputError(describe_os_error(exc, self.path)) from None
 
     # -- topics and messages -------------------------------------------------------------------
-    def add_topic(self, topic: str, type_name: str, qos: list[dict] | None = None) -> None:
-        """Declare a topic (rosbag2 full type name, e.g. ``sensor_msgs/msg/Image``)."""
-        if topic in self._stats.topics:
+    def add_topic(self, topic: str, type_name: str, qos: list[Any] | None = None) -> None:
+        """Declare a topic (full type name, e.g. ``sensor_msgs/msg/Image``); QoS profiles from
+        :func:`qos_profile` (default: reliable, depth 10)."""
+        if topic in self._topics:
             return
-        if type_name not in self._schemas:
-            self._schemas[type_name] = self._mcap.register_schema(
-                name=type_name, encoding="ros2msg",
-                data=full_definition(type_name).encode("utf-8"))
-        qos = qos or [qos_profile()]
-        thash = type_hash(type_name)
-        cid = self._mcap.register_channel(
-            topic=topic, message_encoding="cdr", schema_id=self._schemas[type_name],
-            metadata={"offered_qos_profiles": qos_yaml(qos), "topic_type_hash": thash})
-        self._stats.topics[topic] = _Topic(topic, type_name, cid, qos, thash)
+        store = typestore()
+        if type_name not in store.types:
+            raise BagError(f"cannot write {topic}: type {type_name} is not in rosbags' ROS 2 "
+                           "Jazzy type store")
+        try:
+            self._topics[topic] = self._bag.add_connection(
+                topic, type_name, typestore=store, offered_qos_profiles=qos or [qos_profile()])
+        except WriterError as exc:
+            raise BagError(f"cannot write {topic} to {self.path}: {exc}") from None
 
-    def write(self, topic: str, message: Any, log_time_ns: int,
-              publish_time_ns: int | None = None) -> None:
+    def write(self, topic: str, message: Any, log_time_ns: int) -> None:
         """Write a message (a ROS message object, or already-serialized CDR bytes)."""
-        t = self._stats.topics.get(topic)
-        if t is None:
+        conn = self._topics.get(topic)
+        if conn is None:
             raise BagError(f"topic {topic} was not declared with add_topic()")
         if isinstance(message, (bytes, bytearray, memoryview)):
             data = bytes(message)
@@ -105,74 +126,41 @@ class Rosbag2McapWriter:
             from rclpy.serialization import serialize_message
 
             data = serialize_message(message)
-        log_time_ns = int(log_time_ns)
-        self._mcap.add_message(t.channel_id, log_time=log_time_ns, data=data,
-                               publish_time=int(publish_time_ns or log_time_ns),
-                               sequence=t.sequence)
-        t.sequence += 1
-        t.count += 1
-        s = self._stats
-        s.count += 1
-        s.start = log_time_ns if s.start is None else min(s.start, log_time_ns)
-        s.end = log_time_ns if s.end is None else max(s.end, log_time_ns)
+        self._bag.write(conn, int(log_time_ns), data)
+        self.count += 1
 
-    # -- metadata ------------------------------------------------------------------------------
-    def metadata(self) -> dict:
-        """The ``rosbag2_bagfile_information`` mapping (metadata version 9)."""
-        s = self._stats
-        start = s.start or 0
-        duration = (s.end - s.start) if s.count else 0
-        return {
-            "version": METADATA_VERSION,
-            "storage_identifier": "mcap",
-            "duration": {"nanoseconds": duration},
-            "starting_time": {"nanoseconds_since_epoch": start},
-            "message_count": s.count,
-            "topics_with_message_count": [
-                {"topic_metadata": {"name": t.name, "type": t.type, "serialization_format": "cdr",
-                                    "offered_qos_profiles": t.qos,
-                                    "type_description_hash": t.hash},
-                 "message_count": t.count}
-                for t in s.topics.values()],
-            "compression_format": "",
-            "compression_mode": "",
-            "relative_file_paths": [self.file_name],
-            "files": [{"path": self.file_name,
-                       "starting_time": {"nanoseconds_since_epoch": start},
-                       "duration": {"nanoseconds": duration}, "message_count": s.count}],
-            "custom_data": None,
-            "ros_distro": "jazzy",
-        }
-
+    # -- finishing -----------------------------------------------------------------------------
     def close(self) -> Path:
-        """Finish the MCAP, write ``metadata.yaml`` and move the folder into place."""
+        """Finish the bag (index, ``metadata.yaml``), make it durable, move it into place."""
         if self._closed:
             return self.path
-        meta = self.metadata()
-        self._mcap.add_metadata("rosbag2", {"serialized_metadata": yaml.safe_dump(
-            meta, sort_keys=False, default_flow_style=False)})
-        self._mcap.finish()
-        self._fh.flush()
-        os.fsync(self._fh.fileno())
-        self._fh.close()
-        text = yaml.safe_dump({"rosbag2_bagfile_information": meta}, sort_keys=False,
-                              default_flow_style=False)
-        (self._tmp / "metadata.yaml").write_text(text, encoding="utf-8")
         self._closed = True
-        if self.path.exists():
-            shutil.rmtree(self.path)
-        os.replace(self._tmp, self.path)
-        log.info("wrote bag %s (%d messages)", self.path, self._stats.count)
+        staged = self._stage / self.path.name
+        old = self._stage / ".old"
+        try:
+            self._bag.close()
+            fsync_tree(staged)
+            if self.path.exists():
+                os.replace(self.path, old)
+            os.replace(staged, self.path)
+            fsync_tree(self.path.parent, files=False)
+        except OSError as exc:
+            raise OutputError(describe_os_error(exc, self.path)) from None
+        except WriterError as exc:
+            raise BagError(f"cannot finish {self.path}: {exc}") from None
+        finally:
+            shutil.rmtree(self._stage, ignore_errors=True)
+        log.info("wrote bag %s (%d messages)", self.path, self.count)
         return self.path
 
     def abort(self) -> None:
-        """Drop the partly written bag."""
+        """Drop the partly written bag (the target is left as it was)."""
         if not self._closed:
             self._closed = True
-            self._fh.close()
-            shutil.rmtree(self._tmp, ignore_errors=True)
+            self._bag.abort()
+            shutil.rmtree(self._stage, ignore_errors=True)
 
-    def __enter__(self) -> "Rosbag2McapWriter":
+    def __enter__(self) -> "BagWriter":
         return self
 
     def __exit__(self, exc_type, exc, tb) -> None:
@@ -180,6 +168,14 @@ class Rosbag2McapWriter:
             self.close()
         else:
             self.abort()
+
+
+def bag_files(bag: str | os.PathLike[str]) -> list[Path]:
+    """The storage files of a bag folder, as its ``metadata.yaml`` lists them."""
+    import yaml
+
+    meta = yaml.safe_load((Path(bag) / "metadata.yaml").read_text(encoding="utf-8"))
+    return [Path(bag) / p for p in meta["rosbag2_bagfile_information"]["relative_file_paths"]]
 
 
 def write_sidecar(path: Path, rows: list[dict]) -> None:

@@ -59,6 +59,9 @@ def main(argv: list[str] | None = None) -> int:
     logging.getLogger("vlm_vpr_ros").setLevel(
         logging.WARNING if args.quiet else min(root_level, logging.INFO))
     try:
+        from vlm_vpr_ros.cli.validate import check_args
+
+        check_args(args)  # every numeric option finite and in range, before any work
         rc = args.func(args)
     except VlmVprError as exc:
         log.error("%s", one_line(exc))

@@ -16,13 +16,14 @@ log = logging.getLogger(__name__)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("bag", help="make or inspect rosbag2 MCAP bags")
+    p = sub.add_parser("bag", help="make or inspect rosbag2 bags (MCAP, sqlite3)")
     bsub = p.add_subparsers(dest="bag_command", metavar="ACTION")
     bsub.required = True
     m = bsub.add_parser("make", help="geotagged images -> rosbag2 MCAP (camera + NavSatFix)",
                         description="Writes one camera frame per CSV row at --rate, each with a "
                                     "sensor_msgs/NavSatFix ground truth of the same stamp, as a "
-                                    "rosbag2 MCAP folder (metadata.yaml, frames.csv beside).")
+                                    "rosbag2 bag folder (MCAP or sqlite3, metadata.yaml; "
+                                    "frames.csv beside).")
     m.add_argument("--images", required=True, metavar="DIR")
     m.add_argument("--coords", required=True, metavar="CSV", help="columns file, lat, lon")
     m.add_argument("--out", required=True, metavar="BAG", help="bag folder to create")
@@ -37,8 +38,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     m.add_argument("--start-time", default=None, metavar="SEC[.NANOSEC]",
                    help="stamp of the first frame, seconds since the epoch, read exactly (up "
                         "to 9 decimals; default: now)")
-    m.add_argument("--mcap-compression", choices=["none", "zstd", "lz4"], default="none",
-                   help="MCAP chunk compression (default none)")
+    m.add_argument("--storage", choices=["mcap", "sqlite3"], default="mcap",
+                   help="rosbag2 storage: BAG/BAG.mcap (default) or BAG/BAG.db3")
+    m.add_argument("--mcap-compression", choices=["none", "zstd"], default="none",
+                   help="MCAP chunk compression (default none; zstd needs --storage mcap)")
     m.add_argument("--overwrite", action="store_true")
     m.set_defaults(func=cmd_bag_make)
     i = bsub.add_parser("info", help="topics, types and counts of a bag")
@@ -65,8 +68,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     e = sub.add_parser("evaluate-bag", help="localize a bag's frames offline and score them",
                        description="Reads images and NavSatFix ground truth from the bag, "
-                                   "localizes every frame, writes frames.csv, summary.json, "
-                                   "world_map.png, error_cdf.png and an estimates bag.")
+                                   "localizes every frame (default --fusion posterior, as the "
+                                   "node), writes frames.csv, summary.json, world_map.png, "
+                                   "error_cdf.png and an estimates bag.")
     e.add_argument("bag", metavar="BAG")
     e.add_argument("--map", required=True, metavar="MAP")
     _frame_args(e)
@@ -84,8 +88,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     a = sub.add_parser("ablate", help="the paper's ablation table and top-p plot",
                        description="Rows {no prior, prior+re-rank, country submap, cluster "
-                                   "submap (each with/without re-rank)} x a top-p sweep, "
-                                   "from one map (re-partitioned in memory).")
+                                   "submap (each with/without re-rank)} of the paper's method, "
+                                   "plus the default posterior fusion with and without the "
+                                   "prior, x a top-p sweep, from one map (re-partitioned in "
+                                   "memory).")
     a.add_argument("--map", required=True, metavar="MAP")
     a.add_argument("--images", metavar="DIR", help="query images (with --queries)")
     a.add_argument("--queries", metavar="CSV", help="query file, lat, lon")
@@ -140,7 +146,8 @@ def cmd_bag_make(args: argparse.Namespace) -> int:
     info = make_bag(args.images, args.coords, args.out, rate_hz=args.rate,
                     compressed=args.compressed, topic_prefix=args.topic_prefix,
                     gt_topic=args.gt_topic, frame_id=args.frame_id, start_time_ns=start,
-                    compression=args.mcap_compression, overwrite=args.overwrite)
+                    storage=args.storage, compression=args.mcap_compression,
+                    overwrite=args.overwrite)
     print(f"bag {info['bag']}: {info['frames']} frames on {info['image_topic']} + "
           f"{info['gt_topic']} over {info['duration_s']:.1f} s"
           + (f" ({len(info['skipped'])} unreadable images skipped)" if info["skipped"] else ""))
@@ -236,7 +243,8 @@ def cmd_evaluate_bag(args: argparse.Namespace) -> int:
 
 
 def cmd_ablate(args: argparse.Namespace) -> int:
-    from vlm_vpr_ros.evaluation.ablation import format_ablation, run_ablation
+    from vlm_vpr_ros.evaluation.ablation import ablation_table, format_ablation, run_ablation
+    from vlm_vpr_ros.evaluation.metrics import table_cells
     from vlm_vpr_ros.bags.ablate_inputs import ablation_inputs
     from vlm_vpr_ros.config import choose
     from vlm_vpr_ros.files.atomic import atomic_write_json
@@ -264,7 +272,10 @@ def cmd_ablate(args: argparse.Namespace) -> int:
     plot = plot_topp_ablation(out / "ablation_top_p.png", res.top_ps,
                               {k: [s["accuracy"] for s in v] for k, v in res.rows.items()},
                               title=f"top-p ablation ({len(desc)} queries)")
-    data = {**res.as_dict(), "plot": str(plot)}
+    title, _, table = ablation_table(res, args.table_top_p)
+    head, body = table_cells(table)
+    data = {**res.as_dict(), "plot": str(plot),  # "tables": what scripts/gen_docs.py renders
+            "tables": {"main": {"title": title, "columns": head, "rows": body}}}
     atomic_write_json(out / "ablation.json", data)
     if args.json:
         json.dump(data, sys.stdout)

@@ -1,10 +1,17 @@
-"""``vlm-vpr calibrate``: calibrate a map's 68 / 95 % radii on the user's own labelled queries.
+"""``vlm-vpr calibrate``: calibrate a map's 68 / 95 % radii and its ``p_correct`` on the user's
+own labelled queries.
 
 Split-conformal: for the results of ``vlm-vpr localize`` with this map, the factors that make
 ``error <= k * radius`` hold for 68 % (95 %) of the rows (finite-sample quantile), separately for
 rows with and without a prior, multiply the factors the results were produced with. They are
 stored as the ``user`` section of the map's ``calibration.json`` (the build-time leave-one-out
 section is kept) and override it from the next start of the node or CLI. docs/fusion.md.
+Verified fixes are left out of the radius factors (their radii are the place's, not the
+posterior's).
+
+``p_correct`` (docs/verification.md): the evidence scores (``inlier_ratio``) of the answers that
+were wrong by more than 25 m join the map's leave-one-out wrong answers (``user`` section of
+``verification.json``; a map without one gets a user-only calibration).
 """
 
 from __future__ import annotations
@@ -13,6 +20,7 @@ import argparse
 import logging
 import math
 import os
+from pathlib import Path
 
 from vlm_vpr_ros.errors import DataError
 
@@ -65,6 +73,8 @@ def calibration_ratios(results_csv, ground_truth_csv) -> dict[str, dict[str, lis
                                                             and math.isfinite(lon)):
             continue
         err_m = float(haversine_km(g[0], g[1], lat, lon)) * 1000.0
+        if row.get("status") == "fix":
+            continue  # a verified fix's radii are the place's, not the posterior's
         regime = "prior" if (row.get("prior_lat") or "").strip() else "no_prior"
         out[regime]["68"].append(err_m / r68)
         out[regime]["95"].append(err_m / r95)
@@ -72,6 +82,17 @@ def calibration_ratios(results_csv, ground_truth_csv) -> dict[str, dict[str, lis
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
+    """Writes calibration.json and the manifest of the map: under the map's writer lock (a
+    ``map add`` between reading the manifest and writing it back would otherwise be lost)."""
+    import contextlib
+
+    from vlm_vpr_ros.maps.transaction import edit_lock
+
+    with (contextlib.nullcontext() if args.dry_run else edit_lock(Path(args.map), "calibrate")):
+        return _calibrate(args)
+
+
+def _calibrate(args: argparse.Namespace) -> int:
     from vlm_vpr_ros.localization.fusion.calibration import (CALIBRATION_FORMAT,
                                                              CALIBRATION_VERSION, conformal_factor,
                                                              load_calibration, save_calibration)
@@ -105,13 +126,62 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         print(f"{regime}: {n} rows; coverage now 68 %: {cov68:.1f}%, 95 %: {cov95:.1f}%; "
               f"radii x{c68:.3g} / x{c95:.3g} -> factors k68 {user[regime]['k68']:.4g}, "
               f"k95 {user[regime]['k95']:.4g}")
-    if not done:
+    verified = verification_negatives(args.results, args.ground_truth)
+    if not done and verified is None:
         raise DataError(f"{args.results}: need at least {MIN_ROWS} rows with ground truth, "
-                        "estimates and radii (uncertainty_m, radius95_m) in one regime")
+                        "estimates and radii (uncertainty_m, radius95_m) in one regime, or "
+                        f"{MIN_ROWS} verified rows (inlier_ratio)")
     if args.dry_run:
         print("dry run: nothing written")
         return 0
-    doc["user"] = user
-    path = save_calibration(ref_map, doc)
-    print(f"wrote {path} (used from the next start of the node / CLI)")
+    if done:
+        doc["user"] = user
+        path = save_calibration(ref_map, doc)
+        print(f"wrote {path} (used from the next start of the node / CLI)")
+    if verified is not None:
+        from vlm_vpr_ros.localization.verification.calibration import (load_doc, save_doc,
+                                                                       with_user_negatives)
+
+        scores, n = verified
+        path = save_doc(ref_map, with_user_negatives(
+            load_doc(ref_map), scores, n, os.path.basename(str(args.results))))
+        print(f"wrote {path}: p_correct now also rests on {len(scores)} wrong answers of "
+              f"yours (used from the next start)")
     return 0
+
+
+def verification_negatives(results_csv, ground_truth_csv) -> tuple[list[float], int] | None:
+    """Scores (``inlier_ratio``) of the verified rows more than 25 m off, and the number of
+    verified rows with ground truth; None with fewer than MIN_ROWS of them. Prints the fix
+    rate and precision of these rows."""
+    from vlm_vpr_ros.evaluation.metrics import read_ground_truth
+    from vlm_vpr_ros.files.csvio import read_table
+    from vlm_vpr_ros.geodesy import haversine_km
+
+    gt = read_ground_truth(ground_truth_csv)
+    by_base = {os.path.basename(k): v for k, v in gt.items()}
+    rows = read_table(results_csv, ("file", "lat", "lon"), "results CSV")
+    wrong, n, fixes, fix_ok = [], 0, 0, 0
+    for row in rows:
+        g = gt.get(row["file"]) or by_base.get(os.path.basename(row["file"]))
+        try:
+            lat, lon, score = float(row["lat"]), float(row["lon"]), float(
+                row.get("inlier_ratio") or "nan")
+        except (TypeError, ValueError):
+            continue
+        if g is None or not all(math.isfinite(v) for v in (lat, lon, score)):
+            continue
+        n += 1
+        err_m = float(haversine_km(g[0], g[1], lat, lon)) * 1000.0
+        if err_m > 25.0:
+            wrong.append(score)
+        if row.get("status") == "fix":
+            fixes += 1
+            fix_ok += err_m <= 25.0
+    if n < MIN_ROWS:
+        if n:
+            print(f"verification: {n} verified rows (< {MIN_ROWS}), p_correct not refined")
+        return None
+    print(f"verification: {n} verified rows, {len(wrong)} wrong by > 25 m; fixes {fixes} "
+          f"({fix_ok} within 25 m)")
+    return wrong, n

@@ -1,4 +1,5 @@
-"""Argument groups shared by the sub-commands (priors, localizer switches, descriptor options)."""
+"""Argument groups shared by the sub-commands (priors, localizer switches, descriptor options,
+verification and status)."""
 
 from __future__ import annotations
 
@@ -7,6 +8,8 @@ import argparse
 from vlm_vpr_ros.config import parse_kv
 from vlm_vpr_ros.files.csvio import write_csv_atomic  # noqa: F401  (re-exported for the CLI)
 from vlm_vpr_ros.localization.localizer import FUSION_MODES, LocalizerConfig
+from vlm_vpr_ros.localization.verification.stage import VerificationConfig
+from vlm_vpr_ros.localization.verification.status import StatusPolicy
 from vlm_vpr_ros.priors import PriorProvider, available_prior_providers, create_prior_provider
 
 
@@ -45,7 +48,8 @@ def add_localizer_args(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--no-submap", action="store_true",
                    help="search the whole map even with a prior (ablation)")
     g.add_argument("--no-rerank", action="store_true",
-                   help="ignore the prior when ranking candidates (ablation)")
+                   help="ignore the prior when ranking candidates (ablation; posterior: no "
+                        "prior term, paper: no re-rank)")
     g.add_argument("--n-submaps", type=int, default=1, metavar="N",
                    help="paper fusion: search the N submaps nearest to the prior (default 1)")
 
@@ -68,3 +72,67 @@ def descriptor_options(args: argparse.Namespace) -> dict:
     if args.weights:
         opts["weights"] = args.weights
     return opts
+
+
+def add_verification_args(parser: argparse.ArgumentParser) -> None:
+    """Verification and status rule (docs/verification.md): localize."""
+    g = parser.add_argument_group("verification and status (docs/verification.md)")
+    g.add_argument("--verify-top-k", type=int, default=20, metavar="K",
+                   help="candidates verified with local features + geometry (default 20; 0: "
+                        "off, every answer unverified and no_fix)")
+    g.add_argument("--reference-images", metavar="DIR", default="",
+                   help="reference images, for maps that store no local features (maps built "
+                        "from descriptors): verified from these images")
+    g.add_argument("--verification-required", action="store_true",
+                   help="exit 2 when the map has no usable local features (default: warn, "
+                        "answers unverified)")
+    g.add_argument("--fix-min-p-correct", type=float, default=0.95, metavar="P",
+                   help="status 'fix' needs p_correct >= P (default 0.95)")
+    g.add_argument("--fix-max-sigma-m", type=float, default=50.0, metavar="M",
+                   help="... and a per-axis sigma <= M metres (default 50)")
+    g.add_argument("--trust-prior-for-fix", action="store_true",
+                   help="prior_resolved answers (decisive only because the prior removed far "
+                        "look-alikes) may be fixes")
+    g.add_argument("--trust-operator-prior", action="store_true",
+                   help="... only for priors with their own sigma_km (--prior fixed)")
+    g.add_argument("--feature-option", metavar="KEY=VALUE", action="append", default=[],
+                   help="local feature setting not stored in the map, repeatable (e.g. "
+                        "weights=PATH for a disk_lightglue map)")
+    g.add_argument("--matcher-option", metavar="KEY=VALUE", action="append", default=[],
+                   help="matcher setting, repeatable (e.g. weights=PATH for LightGlue)")
+
+
+def verification_config(args: argparse.Namespace) -> VerificationConfig:
+    return VerificationConfig(args.verify_top_k, args.verification_required,
+                              args.reference_images,
+                              feature_options=parse_kv(args.feature_option),
+                              matcher_options=parse_kv(args.matcher_option))
+
+
+def status_policy(args: argparse.Namespace) -> StatusPolicy:
+    return StatusPolicy(args.fix_min_p_correct, args.fix_max_sigma_m, args.trust_prior_for_fix,
+                        args.trust_operator_prior)
+
+
+def add_local_feature_args(parser: argparse.ArgumentParser) -> None:
+    """build-map: which local features the map stores for verification."""
+    from vlm_vpr_ros.localization.verification.presets import PRESETS
+
+    parser.add_argument("--local-features", metavar="PRESET", default=None,
+                        choices=[*PRESETS, "none"],
+                        help="local features stored for verification: "
+                             f"{', '.join(PRESETS)} or none (default: sift from images, none "
+                             "with --descriptors; docs/verification.md)")
+    parser.add_argument("--feature-option", metavar="KEY=VALUE", action="append", default=[],
+                        help="local feature setting, repeatable (e.g. weights=PATH for disk)")
+    parser.add_argument("--matcher-option", metavar="KEY=VALUE", action="append", default=[],
+                        help="matcher setting for the build's calibration, repeatable (e.g. "
+                             "weights=PATH for LightGlue)")
+
+
+def local_feature_options(args: argparse.Namespace) -> dict:
+    """build-map's ``local_features``, ``feature_options`` and ``matcher_options``."""
+    return {"local_features": args.local_features
+            or ("none" if getattr(args, "descriptors", None) else "sift"),
+            "feature_options": parse_kv(args.feature_option),
+            "matcher_options": parse_kv(args.matcher_option)}

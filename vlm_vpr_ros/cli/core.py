@@ -9,10 +9,12 @@ import sys
 from pathlib import Path
 
 from vlm_vpr_ros.cli.common import (add_descriptor_option_args, add_localizer_args,
-                                    add_prior_args, descriptor_options, localizer_config,
-                                    make_prior_provider)
+                                    add_local_feature_args, add_prior_args,
+                                    add_verification_args, descriptor_options,
+                                    local_feature_options, localizer_config,
+                                    make_prior_provider, status_policy, verification_config)
 from vlm_vpr_ros.cli.distributed import add_engine_args, cmd_build_map_ray, engine_options
-from vlm_vpr_ros.errors import DataError, MapError
+from vlm_vpr_ros.errors import ConfigError, DataError, MapError
 
 log = logging.getLogger(__name__)
 
@@ -54,12 +56,19 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="pq: re-rank the top k*F PQ candidates exactly (default 16)")
     p.add_argument("--overwrite", action="store_true", help="replace a different existing map")
     add_descriptor_option_args(p)
+    add_local_feature_args(p)
     add_engine_args(p)
     p.set_defaults(func=cmd_build_map)
 
     p = sub.add_parser("localize", help="localize query images against a map",
-                       description="For each query: ask the prior, pick the submap, retrieve "
-                                   "the top-p references, re-rank by distance to the prior.")
+                       description="For each query: ask the prior, retrieve the top-p "
+                                   "references in the submaps inside the prior's confidence "
+                                   "region (plus a global top-p on maps up to 250k "
+                                   "references), and fuse visual and prior evidence into a "
+                                   "posterior with calibrated 68/95 % radii (default "
+                                   "--fusion posterior; --fusion paper: the paper's nearest "
+                                   "submap + re-rank by distance to the prior). "
+                                   "docs/fusion.md.")
     p.add_argument("--map", required=True, metavar="MAP")
     p.add_argument("--images", metavar="DIR", help="folder of query images (optional with "
                    "--query-descriptors: then only given to a prior that needs pixels)")
@@ -81,6 +90,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_descriptor_option_args(p)
     add_prior_args(p)
     add_localizer_args(p)
+    add_verification_args(p)
+    g = p.add_argument_group("inspection")
+    g.add_argument("--save-matches", metavar="DIR", default=None,
+                   help="write per query an image of the query beside its top candidates with "
+                        "the verified inlier matches drawn (reference images: the map's own or "
+                        "--reference-images)")
+    g.add_argument("--only-wrong", action="store_true",
+                   help="--save-matches only for answers more than 25 m from the truth")
+    g.add_argument("--ground-truth", metavar="CSV", default=None,
+                   help="file, lat, lon: colours the drawn matches green (right) / red (wrong)")
     p.set_defaults(func=cmd_localize)
 
     p = sub.add_parser("evaluate", help="accuracy of a results CSV against ground truth")
@@ -95,8 +114,14 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     p = sub.add_parser("demo", help="the main job on the shipped demo data (start here)",
                        description="Builds a map from the 71 shipped OpenStreetView-5M images, "
-                                   "localizes re-cropped and re-lit copies of them with and "
-                                   "without recorded priors, and prints the accuracy table.")
+                                   "localizes re-cropped and re-lit copies of them without a "
+                                   "prior, with the recorded OSV-5M priors (default fusion and "
+                                   "the paper's modes) and the prior alone; repeats it on a "
+                                   "look-alike map (every place also 5000 km away, built from "
+                                   "the shipped images) where VPR alone is wrong half the "
+                                   "time; then makes and evaluates a bag. Prints the tables, "
+                                   "writes them to OUT/demo.json with an error CDF and a "
+                                   "contact sheet. About a minute on 2 CPU cores.")
     p.add_argument("--out", default="demo_out", metavar="DIR", help="output folder")
     p.add_argument("--skip-bag", action="store_true", help="skip the bag part of the demo")
     p.set_defaults(func=cmd_demo)
@@ -128,7 +153,6 @@ def teach_config(args: argparse.Namespace):
 
 def check_source_args(args: argparse.Namespace) -> None:
     """Exactly one reference source: --bag, or --images (or --descriptors) with --coords."""
-    from vlm_vpr_ros.errors import ConfigError
 
     descriptors = getattr(args, "descriptors", None)
     if descriptors and (args.images or args.bag):
@@ -147,16 +171,17 @@ def cmd_build_map(args: argparse.Namespace) -> int:
     from vlm_vpr_ros.maps.build_images import build_map
 
     check_source_args(args)
+    local = local_feature_options(args)
     if args.bag:
         from vlm_vpr_ros.bags.teach import build_map_from_bag
-        from vlm_vpr_ros.errors import ConfigError
 
         if args.engine != "local":
             raise ConfigError("--engine ray builds from --images/--coords, not from --bag")
         m, res = build_map_from_bag(
             args.bag, args.out, teach_config(args), overwrite=args.overwrite,
             descriptor=args.descriptor, descriptor_config=descriptor_options(args),
-            partition=args.partition, clusters=args.clusters, index=args.index or "flat")
+            partition=args.partition, clusters=args.clusters, index=args.index or "flat",
+            **local)
         print(res.describe())
         print(f"map {args.out}: {m.n_references} references, {len(m.submaps)} submaps "
               f"({m.partition_method}), descriptor {m.descriptor_identity['name']} "
@@ -171,6 +196,10 @@ def cmd_build_map(args: argparse.Namespace) -> int:
         if args.engine == "ray":
             raise ConfigError("--descriptors builds out of core in this process; --engine ray "
                               "is for images (describe them with 'vlm-vpr describe')")
+        if local["local_features"] != "none":
+            raise ConfigError("--descriptors builds from precomputed descriptors: there are no "
+                              "images to extract local features from (verify at query time "
+                              "with --reference-images DIR; docs/verification.md)")
         m = build_from_descriptors(args.descriptors, args.coords, args.out, args.descriptor,
                                    descriptor_options(args), partition=args.partition,
                                    clusters=args.clusters, overwrite=args.overwrite,
@@ -188,7 +217,7 @@ def cmd_build_map(args: argparse.Namespace) -> int:
         m = build_map(args.images, args.coords, args.out, descriptor=args.descriptor,
                       descriptor_config=descriptor_options(args), partition=args.partition,
                       clusters=args.clusters, overwrite=args.overwrite, index=args.index,
-                      **sizing)
+                      **local, **sizing)
     print(f"map {args.out}: {m.n_references} references, {len(m.submaps)} submaps "
           f"({m.partition_method}), descriptor {m.descriptor_identity['name']} "
           f"{m.dim}-D")
@@ -236,8 +265,11 @@ def cmd_localize(args: argparse.Namespace) -> int:
 
     pipe = LocalizationPipeline.open(args.map, descriptor=args.descriptor,
                                      localizer=localizer_config(args),
-                                     descriptor_config=descriptor_options(args))
+                                     descriptor_config=descriptor_options(args),
+                                     verification=verification_config(args),
+                                     status=status_policy(args))
     pipe.map.open_submaps()  # a damaged map: exit 2 before the first query
+    on_result = _match_writer(args, pipe)
     finished = {r["file"] for r in done}
     todo = [f for f in files if f not in finished]
     provider = make_prior_provider(args)
@@ -245,7 +277,8 @@ def cmd_localize(args: argparse.Namespace) -> int:
 
     stream = ResultsStream(out, [r for r in done if r["file"] in set(files)])
     try:
-        for row in tqdm(localize_files(pipe, provider, args.images, todo, args.prior_timeout),
+        for row in tqdm(localize_files(pipe, provider, args.images, todo, args.prior_timeout,
+                                       on_result=on_result),
                         total=len(todo), desc="localize", unit="img", disable=None):
             stream.write(row)
     except OSError as exc:  # disk full / permissions while streaming
@@ -269,6 +302,19 @@ def cmd_localize(args: argparse.Namespace) -> int:
     return 0
 
 
+def _match_writer(args: argparse.Namespace, pipe):
+    """The ``--save-matches`` callback (None without it)."""
+    if not args.save_matches:
+        if args.only_wrong:
+            raise ConfigError("--only-wrong goes with --save-matches DIR")
+        return None
+    from vlm_vpr_ros.evaluation.matches import MatchWriter
+    from vlm_vpr_ros.evaluation.metrics import read_ground_truth
+
+    gt = read_ground_truth(args.ground_truth) if args.ground_truth else None
+    return MatchWriter(args.save_matches, pipe, gt, args.only_wrong)
+
+
 def _localize_descriptors(args: argparse.Namespace, files: list[str]) -> int:
     from tqdm import tqdm
 
@@ -286,10 +332,14 @@ def _localize_descriptors(args: argparse.Namespace, files: list[str]) -> int:
                        "requested")
     descs = open_query_descriptors(args.query_descriptors, len(files), ref_map.dim)
     localizer = Localizer(ref_map, localizer_config(args))
+    from vlm_vpr_ros.localization.verification.stage import Verifier
+
+    verifier = Verifier(ref_map, verification_config(args)) if args.images else None
     provider = make_prior_provider(args)
     try:
         rows = list(tqdm(localize_descriptors(localizer, provider, files, descs, args.images,
-                                              args.prior_timeout),
+                                              args.prior_timeout, verifier=verifier,
+                                              policy=status_policy(args)),
                          total=len(files), desc="localize", unit="query", disable=None))
     finally:
         provider.close()
@@ -304,7 +354,10 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
     summary, extra = evaluate_results_csv(args.results, args.ground_truth)
     if args.json:
-        json.dump(summary, sys.stdout)
+        json.dump({**summary, "recall_pct": extra["recall_pct"], "fixes": extra["fixes"],
+                   "coverage68_pct": round(extra["coverage_pct"], 2),
+                   "coverage95_pct": (None if extra["coverage95_pct"] is None
+                                      else round(extra["coverage95_pct"], 2))}, sys.stdout)
         sys.stdout.write("\n")
         return 0
     print(format_table({"results": summary}, title=f"accuracy of {args.results}"))
@@ -314,6 +367,16 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
           + ("- (no radius95_m column)" if c95 is None else f"{c95:.1f}%")
           + f"; {extra['flagged']} flagged rows; {extra['missing_gt']} rows without ground "
           "truth")
+    rec, fx = extra["recall_pct"], extra["fixes"]
+    print("recall within 25 m: " + ("- (no top_positions column)" if rec is None else
+                                    "  ".join(f"R{k} {v:.1f}%" for k, v in rec.items())))
+    if fx is None:
+        print("fixes: - (no status column: results of an older version)")
+    else:
+        prec = ("-" if fx["n"] == 0 else f"{fx['precision25_pct']:.1f}% within 25 m, "
+                f"{fx['precision50_pct']:.1f}% within 50 m")
+        print(f"fixes (status fix): {fx['n']} of {summary['n']} ({fx['rate_pct']:.1f}%); "
+              f"precision {prec}")
     return 0
 
 

@@ -60,7 +60,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--descriptor", default="vlad_rootsift", metavar="NAME",
                    help="descriptor preset (see 'vlm-vpr descriptors'; default vlad_rootsift)")
     p.add_argument("--overwrite", action="store_true",
-                   help="replace a shard folder that holds other descriptors")
+                   help="replace a shard folder written by 'vlm-vpr describe' that holds "
+                        "other descriptors (kept until the new one is complete; any other "
+                        "folder is never replaced)")
     add_descriptor_option_args(p)
     add_engine_args(p)
     p.set_defaults(func=cmd_describe)
@@ -75,16 +77,17 @@ def cmd_describe(args: argparse.Namespace) -> int:
     res = describe_to_shards(args.images, [r[0] for r in rows], args.out,
                              descriptor=args.descriptor,
                              descriptor_config=descriptor_options(args), options=opts,
-                             overwrite=args.overwrite)
+                             overwrite=args.overwrite, inputs=[args.coords])
     print(res.summary())
     return 0
 
 
 def cmd_build_map_ray(args: argparse.Namespace):
     """``build-map --engine ray``; returns the ReferenceMap."""
+    from vlm_vpr_ros.cli.common import local_feature_options
     from vlm_vpr_ros.distributed.build import build_map_ray
 
     return build_map_ray(args.images, args.coords, args.out, descriptor=args.descriptor,
                          descriptor_config=descriptor_options(args), partition=args.partition,
                          clusters=args.clusters, overwrite=args.overwrite, index=args.index,
-                         options=engine_options(args))
+                         options=engine_options(args), **local_feature_options(args))

@@ -90,7 +90,15 @@ def cmd_map_add(args: argparse.Namespace) -> int:
         return 0
     from vlm_vpr_ros.bags.teach import extract_references
 
-    stage = Path(args.map) / f".add{os.getpid()}"
+    # the frames are extracted beside the map (not into it: a rebuild that swaps the map
+    # folder meanwhile would take them away); inside only when the parent is read-only
+    target = Path(args.map)
+    stage = target.parent / f".{target.name}.add{os.getpid()}"
+    try:
+        shutil.rmtree(stage, ignore_errors=True)
+        stage.mkdir(parents=True)
+    except PermissionError:
+        stage = target / f".add{os.getpid()}"
     shutil.rmtree(stage, ignore_errors=True)
     try:
         teach = extract_references(args.bag, stage, teach_config(args))
@@ -146,8 +154,23 @@ def map_info(path: str | Path) -> dict:
         "expected_ram_bytes": sum(s["ram_bytes"] for s in subs) if man["version"] >= 2
         else sum(s["disk_bytes"] for s in subs),
         "skipped": len(man.get("source", {}).get("skipped", [])),
+        "local_features": _local_features_info(man),
         "submaps": subs,
     }
+
+
+def _local_features_info(man: dict) -> dict | None:
+    """The stored local features (docs/verification.md): feature, bytes per reference, the
+    leave-one-out calibration of p_correct; None when the map stores none."""
+    sec = man.get("local_features")
+    if not sec:
+        return None
+    n = max(1, int(man.get("n_references", 0)))
+    return {"preset": sec.get("preset"), "feature": (sec.get("feature") or {}).get("name"),
+            "max_keypoints": sec.get("max_keypoints"), "bytes": int(sec.get("bytes", 0)),
+            "bytes_per_reference": round(int(sec.get("bytes", 0)) / n),
+            "keypoints_per_reference": round(int(sec.get("n_keypoints", 0)) / n, 1),
+            "calibrated": bool(man.get("verification_calibration"))}
 
 
 def _mb(b: int) -> str:
@@ -170,6 +193,15 @@ def cmd_info(args: argparse.Namespace) -> int:
     print(f"  index        {info['index']} ({kinds}); "
           f"rerank_factor {info['index_params'].get('rerank_factor', '-')}")
     print(f"  on disk      {_mb(info['disk_bytes'])}")
+    lf = info["local_features"]
+    if lf is None:
+        print("  local feat.  none (answers unverified unless reference images are given; "
+              "docs/verification.md)")
+    else:
+        print(f"  local feat.  {lf['preset']} ({lf['feature']}, <= {lf['max_keypoints']} "
+              f"keypoints): {lf['bytes_per_reference'] / 1e3:.1f} kB per reference "
+              f"({lf['keypoints_per_reference']:.0f} keypoints), {_mb(lf['bytes'])}; p_correct "
+              + ("calibrated by leave-one-out" if lf["calibrated"] else "uncalibrated"))
     print(f"  RAM (hot)    {_mb(info['expected_ram_bytes'])} when every submap has been "
           "searched" + (" (v1: loaded whole)" if info["version"] < 2 else ""))
     print(f"  {'submap':<14}{'group':<10}{'refs':>10}  {'kind':<5}{'disk':>14}{'RAM':>14}"
@@ -198,19 +230,24 @@ def cmd_verify(args: argparse.Namespace) -> int:
 
 def cmd_upgrade(args: argparse.Namespace) -> int:
     from vlm_vpr_ros.errors import MapError
-    from vlm_vpr_ros.maps.reference_map import ReferenceMap
+    from vlm_vpr_ros.files.lock import WriterLock
+    from vlm_vpr_ros.files.outputs import StagedOutput, check_not_inside
     from vlm_vpr_ros.maps.build_descriptors import convert_map
+    from vlm_vpr_ros.maps.reference_map import ReferenceMap
 
     out = Path(args.out)
     if out.exists():
         raise MapError(f"{out} exists; upgrade writes a new folder beside the old map")
-    old = ReferenceMap.load(args.map, verify=True)
-    kind = args.index or old.manifest.get("index", "flat")
-    new = convert_map(old, "pq" if kind == "auto" else kind,
-                      args.rerank_factor or old.rerank_factor)
-    tmp = out.with_name(f".{out.name}.tmp")
-    new.save(tmp)
-    tmp.rename(out)
+    check_not_inside(out, [args.map])
+    # the source's writer lock: no edit or rebuild swaps it while it is read
+    with WriterLock(args.map, "map upgrade (reading it)", inside_ok=True):
+        old = ReferenceMap.load(args.map, verify=True)
+        kind = args.index or old.manifest.get("index", "flat")
+        new = convert_map(old, "pq" if kind == "auto" else kind,
+                          args.rerank_factor or old.rerank_factor)
+        with StagedOutput(out, "map") as stage:  # the new map's lock, staged then swapped in
+            new.save(stage.path)
+            stage.commit(validate=ReferenceMap.load)
     print(f"map {args.out}: v2, {new.n_references} references, {len(new.submaps)} submaps, "
           f"index {kind} (from {args.map}, format v{old.manifest['version']})")
     return 0

@@ -17,6 +17,7 @@ from vlm_vpr_ros.evaluation.metrics import errors_km, read_ground_truth, summari
 from vlm_vpr_ros.geodesy import THRESHOLDS_KM
 from vlm_vpr_ros.priors import PriorQuery, create_prior_provider
 from vlm_vpr_ros.priors.parsing import PARSER_MODES, parse_answer
+from vlm_vpr_ros.redact import redact, redact_obj
 
 log = logging.getLogger(__name__)
 
@@ -143,18 +144,23 @@ def cmd_ask(args: argparse.Namespace) -> int:
                               timeout_s=args.prior_timeout)
     finally:
         provider.close()
+    # everything printed passes the redaction point: an endpoint may echo request headers
     if args.json:
         p = result.prior
-        print(json.dumps({"ok": result.ok, "lat": p.lat if p else None,
-                          "lon": p.lon if p else None, "source": result.source,
-                          "reason": result.reason, "latency_s": round(result.latency_s, 3),
-                          "raw_text": result.raw_text, "extra": result.extra}))
+        print(redact(json.dumps(redact_obj({
+            "ok": result.ok, "lat": p.lat if p else None, "lon": p.lon if p else None,
+            "source": result.source, "reason": result.reason,
+            "latency_s": round(result.latency_s, 3), "raw_text": result.raw_text,
+            "extra": result.extra}))))
     elif result.prior is not None:
-        print(f"{result.prior.lat:.6f} {result.prior.lon:.6f}  ({result.source}, "
-              f"{result.latency_s:.2f} s, {result.extra.get('parse_method', '')}"
-              f"{', cached' if result.extra.get('cached') else ''})")
+        how = ", ".join(x for x in (result.extra.get("parse_method"),
+                                    result.extra.get("parse_path"),
+                                    "cached" if result.extra.get("cached") else None) if x)
+        print(redact(f"{result.prior.lat:.6f} {result.prior.lon:.6f}  ({result.source}, "
+                     f"{result.latency_s:.2f} s{', ' + how if how else ''})"))
     else:
-        print(f"no prior: {result.reason} ({result.source}, {result.latency_s:.2f} s)")
+        print(redact(f"no prior: {result.reason} ({result.source}, "
+                     f"{result.latency_s:.2f} s)"))
         if result.raw_text:
-            print(f"answer: {result.raw_text[:500]}")
+            print(redact(f"answer: {' '.join(result.raw_text[:500].split())}"))
     return 0 if result.ok else 1

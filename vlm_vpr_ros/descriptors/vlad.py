@@ -10,17 +10,17 @@ so no download is ever needed.
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import asdict, dataclass
 from typing import Any, Iterable, Mapping, Sequence
 
-import cv2
 import numpy as np
 
 from vlm_vpr_ros.config import from_mapping
 from vlm_vpr_ros.descriptors import DescriptorPreset, register_descriptor
 from vlm_vpr_ros.descriptors.base import GlobalDescriptor, l2_normalize
+from vlm_vpr_ros.descriptors.local_sift import gray_frame, sift_detect
 from vlm_vpr_ros.errors import DescriptorError
-from vlm_vpr_ros.files.images import check_rgb
 
 log = logging.getLogger(__name__)
 
@@ -37,6 +37,27 @@ class VladConfig:
     fit_max_features: int = 200_000
     seed: int = 0
 
+    def __post_init__(self) -> None:
+        """Every value in range before any work: a bad option is one line at the start, not
+        an OpenCV assertion (``max_side=1``) or a failure after the whole build
+        (``pca_dim=0``)."""
+        ints = {"max_side": (32, 16384), "n_features": (1, 100_000), "n_words": (2, 4096),
+                "pca_dim": (1, 4096 * 128), "fit_max_images": (2, 10_000_000),
+                "fit_max_features": (4 * 2, 100_000_000), "seed": (0, 2 ** 32 - 1)}
+        for name, (lo, hi) in ints.items():
+            v = getattr(self, name)
+            if not isinstance(v, int) or isinstance(v, bool) or not lo <= v <= hi:
+                raise ValueError(f"{name} must be an integer in {lo}..{hi}, got {v!r}")
+        if self.fit_max_features < 4 * self.n_words:
+            raise ValueError(f"fit_max_features must be at least 4 x n_words "
+                             f"({4 * self.n_words}), got {self.fit_max_features}")
+        if not isinstance(self.whiten, bool):
+            raise ValueError(f"whiten must be true or false, got {self.whiten!r}")
+        w = self.whiten_shrink
+        if (not isinstance(w, (int, float)) or isinstance(w, bool) or not math.isfinite(w)
+                or not 0 <= w <= 1e6):
+            raise ValueError(f"whiten_shrink must be a finite number >= 0, got {w!r}")
+
 
 class VladRootSift(GlobalDescriptor):
     """VLAD + RootSIFT global descriptor (see module docstring)."""
@@ -47,7 +68,6 @@ class VladRootSift(GlobalDescriptor):
         self.cfg = from_mapping(VladConfig, config, "vlad_rootsift")
         super().__init__(asdict(self.cfg))
         self.name = name
-        self._sift = cv2.SIFT_create(nfeatures=self.cfg.n_features)
         self.centroids: np.ndarray | None = None
         self.pca_mean: np.ndarray | None = None
         self.pca_proj: np.ndarray | None = None
@@ -124,15 +144,26 @@ class VladRootSift(GlobalDescriptor):
 
     def local_features(self, image: np.ndarray) -> np.ndarray:
         """RootSIFT descriptors (N, 128) float32 of one RGB image."""
-        image = check_rgb(image)
-        gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
-        h, w = gray.shape
-        scale = self.cfg.max_side / max(h, w)
-        if scale < 1.0:
-            gray = cv2.resize(gray, (round(w * scale), round(h * scale)),
-                              interpolation=cv2.INTER_AREA)
-        _, des = self._sift.detectAndCompute(gray, None)
-        if des is None or len(des) == 0:
+        return self._rootsift(self.sift(image)[1])
+
+    def sift(self, image: np.ndarray) -> tuple:
+        """The SIFT pass of one RGB image: keypoints (frame pixels), raw descriptors,
+        responses, the frame's scale back to the image and its (width, height). The
+        verification stage reuses it (``describe_with_sift``) when the map's local features
+        are this same SIFT."""
+        gray, scale = gray_frame(image, self.cfg.max_side)
+        xy, des, resp = sift_detect(gray, self.cfg.n_features)
+        return xy, des, resp, scale, (gray.shape[1], gray.shape[0])
+
+    def describe_with_sift(self, image: np.ndarray) -> tuple[np.ndarray, tuple]:
+        """The global descriptor of one image and its SIFT pass (see :meth:`sift`)."""
+        self._require_fit()
+        pass_ = self.sift(image)
+        return self._project(self._vlad(self._rootsift(pass_[1]))[None, :])[0], pass_
+
+    @staticmethod
+    def _rootsift(des: np.ndarray) -> np.ndarray:
+        if len(des) == 0:
             return np.zeros((0, 128), np.float32)
         des = des.astype(np.float32)
         des /= des.sum(axis=1, keepdims=True) + 1e-7

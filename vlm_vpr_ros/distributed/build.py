@@ -40,7 +40,7 @@ class RayMapEngine:
         # the work folder is the build's own: a shard folder of other settings is replaced
         self.result = describe_to_shards(images_dir, ids, shards, descriptor=desc,
                                          options=self.opts, overwrite=True,
-                                         engine=self.session.describer(source))
+                                         engine=self.session.describer(source), staged=False)
         if self.result.described == 0:
             return np.zeros((len(ids), desc.dim), np.float32), np.zeros(len(ids), bool)
         return read_shards(shards, ids)
@@ -57,8 +57,12 @@ def build_map_ray(images_dir: str | Path, coords_csv: str | Path, out_dir: str |
                   descriptor_config: Mapping[str, Any] | None = None,
                   partition: str = "kmeans", clusters: int = 100, overwrite: bool = False,
                   seed: int = 0, index: str = "flat",
-                  options: DescribeOptions | None = None) -> ReferenceMap:
-    """``build_map`` with the Ray engine (starts a local Ray without ``ray_address``)."""
+                  options: DescribeOptions | None = None, local_features: str = "sift",
+                  feature_options: Mapping[str, Any] | None = None,
+                  matcher_options: Mapping[str, Any] | None = None) -> ReferenceMap:
+    """``build_map`` with the Ray engine (starts a local Ray without ``ray_address``). The
+    references' local features (``local_features``, docs/verification.md) are extracted by
+    the driver after the Ray pass, in the build's resumable chunks."""
     from vlm_vpr_ros.distributed.ray_engine import RaySession
     from vlm_vpr_ros.maps.build_images import build_map
 
@@ -69,4 +73,6 @@ def build_map_ray(images_dir: str | Path, coords_csv: str | Path, out_dir: str |
         return build_map(images_dir, coords_csv, out_dir, descriptor=descriptor,
                          descriptor_config=descriptor_config, partition=partition,
                          clusters=clusters, overwrite=overwrite, progress=opts.progress,
-                         seed=seed, index=index, engine=RayMapEngine(session, opts))
+                         seed=seed, index=index, engine=RayMapEngine(session, opts),
+                         local_features=local_features, feature_options=feature_options,
+                         matcher_options=matcher_options)

@@ -2,8 +2,13 @@
 
 The job is the same for both engines (only *where* images are described differs):
 
-1. the images folder/URI and the CSV's ids are checked; the shard folder is opened (resumed
-   when it holds the same job, see :mod:`~vlm_vpr_ros.distributed.shards`);
+1. the images folder/URI and the CSV's ids are checked; the shard folder is written like every
+   output of this tool (:class:`~vlm_vpr_ros.files.outputs.StagedOutput`): under the folder's
+   writer lock, into ``PARENT/.NAME.partial/NAME`` (resumed when it holds the same job, see
+   :mod:`~vlm_vpr_ros.distributed.shards`) and swapped in when complete. ``--overwrite``
+   replaces only a shard folder this tool wrote, never a user's folder or an input (``--out``
+   may not be, contain or lie inside the images folder); a finished folder of the same job is
+   "up to date";
 2. a stateful descriptor (``vlad_rootsift``) is fitted ONCE on the same sample as the local
    ``build-map`` (:func:`vlm_vpr_ros.maps.build_images.fit_sample_indices`) and its state is saved, then
    sent to every worker;
@@ -26,10 +31,10 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from vlm_vpr_ros.descriptors import GlobalDescriptor, create_descriptor
-from vlm_vpr_ros.distributed.shards import (DEFAULT_SHARD_SIZE, ShardStore, job_fingerprint,
-                                            plan_shards)
+from vlm_vpr_ros.distributed.shards import (DEFAULT_SHARD_SIZE, ShardStore, finished_job,
+                                            job_fingerprint, plan_shards, unfinished_job)
 from vlm_vpr_ros.distributed.engines import Engine, LocalEngine
-from vlm_vpr_ros.distributed.sources import ImageSource
+from vlm_vpr_ros.distributed.sources import ImageSource, is_uri
 from vlm_vpr_ros.errors import ConfigError, DescriptorError
 
 log = logging.getLogger(__name__)
@@ -114,14 +119,17 @@ def describe_to_shards(images: str | Path, ids: Sequence[str], out: str | Path,
                        descriptor: str | GlobalDescriptor = "vlad_rootsift",
                        descriptor_config: Mapping[str, Any] | None = None,
                        options: DescribeOptions | None = None, overwrite: bool = False,
-                       engine: Engine | None = None) -> DescribeResult:
+                       engine: Engine | None = None, staged: bool = True,
+                       inputs: Sequence[str | Path] = ()) -> DescribeResult:
     """Describe ``images/<id>`` for every id into the shard folder ``out`` (resumable).
 
     ``descriptor`` may be an already created descriptor (it is fitted in place when it needs
     it). ``engine``: an open engine (``build-map --engine ray`` passes its Ray session);
-    by default one is made from ``options``.
+    by default one is made from ``options``. ``staged=False`` writes into ``out`` directly
+    (a build's own scratch folder, already under the map's lock). ``inputs``: other input
+    files (the coordinates CSV) that ``out`` must not be, contain or lie inside.
     """
-    from vlm_vpr_ros.maps.build_images import fit_sample_indices
+    from vlm_vpr_ros.files.outputs import StagedOutput, check_not_inside
 
     opts = options or DescribeOptions()
     opts.validate()
@@ -133,13 +141,43 @@ def describe_to_shards(images: str | Path, ids: Sequence[str], out: str | Path,
     ids = list(ids)
     if not ids:
         raise ConfigError("no reference ids to describe")
-    store = ShardStore(out)
-    store.open(job_fingerprint(ids, desc.identity(), opts.shard_size), len(ids),
-               opts.shard_size, overwrite)
+    fingerprint = job_fingerprint(ids, desc.identity(), opts.shard_size)
+    if not staged:
+        res = _describe_into(Path(out), source, ids, desc, opts, fingerprint, overwrite,
+                             engine, t_start)
+        log.info("%s", res.summary())
+        return res
+    local = _local_path(str(images)) if is_uri(images) else Path(images)
+    check_not_inside(out, [local, *inputs])
+    done = finished_job(Path(out), fingerprint)
+    if done is not None:
+        log.info("descriptor shards %s are up to date", out)
+        return DescribeResult(Path(out), len(ids), done["described"], done["skipped"],
+                              int(done.get("shards", 0)), 0, time.monotonic() - t_start, 0,
+                              opts.engine, dict(done["descriptor"]))
+    with StagedOutput(out, "shards", overwrite, resumable=True, marker=True,
+                      adopt=lambda p: unfinished_job(p, fingerprint)) as stage:
+        # the staging folder is this tool's own: other work found there is replaced
+        res = _describe_into(stage.path, source, ids, desc, opts, fingerprint, True, engine,
+                             t_start)
+        stage.commit()
+    res.folder = Path(out)
+    log.info("%s", res.summary())
+    return res
+
+
+def _describe_into(folder: Path, source: ImageSource, ids: list[str], desc: GlobalDescriptor,
+                   opts: DescribeOptions, fingerprint: str, overwrite: bool,
+                   engine: Engine | None, t_start: float) -> DescribeResult:
+    """The job proper, in a folder that is this job's own (resumed when it holds it)."""
+    from vlm_vpr_ros.maps.build_images import fit_sample_indices
+
     own_engine = engine is None
-    if engine is None:
+    if engine is None:  # first: a cluster that cannot be reached leaves nothing behind
         engine = make_engine(opts, desc, source)
     try:
+        store = ShardStore(folder)
+        store.open(fingerprint, len(ids), opts.shard_size, overwrite)
         state: dict[str, np.ndarray] = {}
         if desc.needs_fit:
             saved = store.load_state()
@@ -162,11 +200,9 @@ def describe_to_shards(images: str | Path, ids: Sequence[str], out: str | Path,
     finally:
         if own_engine:
             engine.close()
-    res = DescribeResult(Path(out), len(ids), meta["described"], meta["skipped"],
-                         len(plan) - len(pending), computed, time.monotonic() - t_start,
-                         engine.workers, opts.engine, identity, t_describe)
-    log.info("%s", res.summary())
-    return res
+    return DescribeResult(folder, len(ids), meta["described"], meta["skipped"],
+                          len(plan) - len(pending), computed, time.monotonic() - t_start,
+                          engine.workers, opts.engine, identity, t_describe)
 
 
 def _run(engine: Engine, store: ShardStore, ids: Sequence[str],
@@ -223,6 +259,14 @@ def _write(store: ShardStore, ids: Sequence[str], s: int, b: dict) -> None:
     skipped = [{"id": ids[s + k], "reason": b["reasons"][k]}
                for k in range(len(b["ok"])) if not b["ok"][k]]
     store.write(s, b["end"], [ids[s + k] for k in keep], b["feats"][keep], skipped)
+
+
+def _local_path(uri: str) -> Path | None:
+    """The folder of a ``file://`` URI (remote sources are no local input: None)."""
+    import urllib.parse
+
+    u = urllib.parse.urlparse(uri)
+    return Path(urllib.parse.unquote(u.path)) if u.scheme == "file" else None
 
 
 def _hms(seconds: float) -> str:

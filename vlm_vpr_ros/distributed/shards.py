@@ -65,6 +65,36 @@ def job_fingerprint(ids: Sequence[str], identity: Mapping[str, Any], shard_size:
     return h.hexdigest()
 
 
+def _job(folder: Path) -> dict | None:
+    try:
+        job = json.loads((folder / PROGRESS / "job.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    return job if isinstance(job, dict) else None
+
+
+def finished_job(folder: Path, fingerprint: str) -> dict | None:
+    """``describe.json`` of a finished shard folder of this very job (None otherwise)."""
+    job = _job(folder)
+    if job is None or job.get("fingerprint") != fingerprint:
+        return None
+    try:
+        meta = json.loads((folder / DESCRIBE_JSON).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    ok = isinstance(meta, dict) and meta.get("format") == SHARDS_FORMAT and all(
+        k in meta for k in ("described", "skipped", "descriptor"))
+    return meta if ok else None
+
+
+def unfinished_job(folder: Path, fingerprint: str) -> bool:
+    """Whether ``folder`` holds this job, unfinished, written in place (by a version before
+    staging, or seeded by a benchmark): it is then moved into the staging folder and resumed."""
+    job = _job(folder)
+    return (job is not None and job.get("fingerprint") == fingerprint
+            and not (folder / DESCRIBE_JSON).exists())
+
+
 class ShardStore:
     """Writes (and, for resuming, lists) the shards of one describe job."""
 

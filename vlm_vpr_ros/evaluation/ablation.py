@@ -127,6 +127,27 @@ def run_ablation(ref_map: ReferenceMap, descriptors: np.ndarray, truth: np.ndarr
     return result
 
 
+def ablation_table(result: AblationResult,
+                   table_top_p: int | None = None) -> tuple[str, int, dict[str, dict]]:
+    """(title, top-p, rows) of the paper-style table at one top-p (default: the largest
+    swept); each row name starts with its fusion mode."""
+    ps = result.top_ps
+    p = table_top_p if table_top_p in ps else ps[-1]
+    i = ps.index(p)
+    table = {_label(result, name): sums[i] for name, sums in result.rows.items()}
+    if result.prior_only is not None:
+        table = {f"{'-':<10}{PRIOR_ONLY}": result.prior_only, **table}
+    n = next(iter(table.values()))["n"]
+    title = (f"Ablation at top-p = {p} ({n} queries; cluster submaps: "
+             f"K={result.n_submaps.get('kmeans', result.clusters)}, "
+             f"countries: {result.n_submaps.get('country', '-')})")
+    return title, p, table
+
+
+def _label(result: AblationResult, name: str) -> str:  # the fusion mode as the first column
+    return f"{result.fusion.get(name, 'paper'):<10}{name}"
+
+
 def format_ablation(result: AblationResult, table_top_p: int | None = None,
                     sweep_metric: str = "25km") -> str:
     """The paper-style table at one top-p (default: the largest swept), then the top-p sweep
@@ -134,18 +155,8 @@ def format_ablation(result: AblationResult, table_top_p: int | None = None,
     from vlm_vpr_ros.evaluation.metrics import format_table
 
     ps = result.top_ps
-    p = table_top_p if table_top_p in ps else ps[-1]
-    i = ps.index(p)
-    def label(name: str) -> str:  # the fusion mode as the first column
-        return f"{result.fusion.get(name, 'paper'):<10}{name}"
-
-    table = {label(name): sums[i] for name, sums in result.rows.items()}
-    if result.prior_only is not None:
-        table = {f"{'-':<10}{PRIOR_ONLY}": result.prior_only, **table}
-    n = next(iter(table.values()))["n"]
-    out = [format_table(table, title=f"Ablation at top-p = {p} ({n} queries; cluster submaps: "
-                                     f"K={result.n_submaps.get('kmeans', result.clusters)}, "
-                                     f"countries: {result.n_submaps.get('country', '-')})")]
+    title, _, table = ablation_table(result, table_top_p)
+    out = [format_table(table, title=title)]
     keys = [f"{t:g}km" for t in THRESHOLDS_KM]
     if sweep_metric not in keys:
         raise DataError(f"unknown metric {sweep_metric!r}; choices: {', '.join(keys)}")
@@ -153,6 +164,6 @@ def format_ablation(result: AblationResult, table_top_p: int | None = None,
         f"{'p=' + str(q):>9}" for q in ps)
     out += ["", head, "-" * len(head)]
     for name, sums in result.rows.items():
-        out.append(f"{label(name):<46}" + "".join(f"{s['accuracy'][sweep_metric]:>8.2f}%"
+        out.append(f"{_label(result, name):<46}" + "".join(f"{s['accuracy'][sweep_metric]:>8.2f}%"
                                            for s in sums))
     return "\n".join(out)

@@ -21,29 +21,52 @@ def errors_km(est: Sequence[tuple[float, float] | None],
     return out
 
 
-def summarize(errs: Iterable[float | None]) -> dict:
-    """``{"n", "accuracy": {"1km", ...}, "median_km"}`` — the JSON of ``vlm-vpr evaluate``."""
+def summarize(errs: Iterable[float | None],
+              thresholds: Sequence[float] = THRESHOLDS_KM) -> dict:
+    """``{"n", "accuracy": {"1km", ...}, "median_km"}`` — the JSON of ``vlm-vpr evaluate``
+    (accuracy keys ``f"{t:g}km"`` for each of ``thresholds``, in km)."""
     errs = list(errs)
     med = median_km(errs)
     return {
         "n": len(errs),
-        "accuracy": {k: round(v, 2) for k, v in accuracy_table(errs).items()},
+        "accuracy": {k: round(v, 2) for k, v in accuracy_table(errs, thresholds).items()},
         "median_km": None if med is None else round(med, 3),
     }
 
 
-def format_table(rows: dict[str, dict], title: str = "") -> str:
-    """Plain-text table: one line per named summary (as returned by :func:`summarize`)."""
-    keys = [f"{t:g}km" for t in THRESHOLDS_KM]
-    head = f"{'':<36}{'n':>6}" + "".join(f"{k:>9}" for k in keys) + f"{'median km':>12}"
-    lines = [title] if title else []
-    lines += [head, "-" * len(head)]
+def threshold_label(key: str) -> str:
+    """An accuracy key as a column label: ``"25km"`` stays, ``"0.025km"`` → ``"25m"``."""
+    km = float(key.removesuffix("km"))
+    return f"{km * 1000:g}m" if km < 1 else key
+
+
+def table_cells(rows: dict[str, dict]) -> tuple[list[str], list[list[str]]]:
+    """Header and rows (strings) of an accuracy table: one row per named summary (as returned
+    by :func:`summarize`); the columns are the first row's accuracy keys. The printed tables
+    (:func:`format_table`) and the generated docs tables (the demo's JSON) both come from here."""
+    first = next(iter(rows.values()), None)
+    keys = list(first["accuracy"]) if first else [f"{t:g}km" for t in THRESHOLDS_KM]
+    head = ["", "n", *(threshold_label(k) for k in keys), "median km"]
+    body = []
     for name, s in rows.items():
         med = s.get("median_km")
-        lines.append(f"{name:<36}{s['n']:>6}"
-                     + "".join(f"{s['accuracy'][k]:>8.2f}%" for k in keys)
-                     + f"{'-' if med is None else f'{med:.1f}':>12}")
-    return "\n".join(lines)
+        body.append([name, str(s["n"]), *(f"{s['accuracy'][k]:.2f}%" for k in keys),
+                     "-" if med is None else f"{med:.1f}"])
+    return head, body
+
+
+def format_table(rows: dict[str, dict], title: str = "") -> str:
+    """Plain-text table of :func:`table_cells`."""
+    head, body = table_cells(rows)
+    widths = [36, 6] + [9] * (len(head) - 3) + [12]
+
+    def line(cells: list[str]) -> str:
+        return f"{cells[0]:<{widths[0]}}" + "".join(f"{c:>{w}}"
+                                                    for c, w in zip(cells[1:], widths[1:]))
+
+    top = line(head)
+    return "\n".join(([title] if title else []) + [top, "-" * len(top)]
+                     + [line(r) for r in body])
 
 
 def read_ground_truth(path) -> dict[str, tuple[float, float]]:
@@ -63,11 +86,12 @@ def read_ground_truth(path) -> dict[str, tuple[float, float]]:
 
 
 def _float(v) -> float | None:
-    try:
-        x = float(v)
-    except (TypeError, ValueError):
-        return None
-    return x if math.isfinite(x) else None
+    """A finite number of a results CSV, or None (empty, not a plain number: strict, see
+    :func:`vlm_vpr_ros.files.csvio.strict_float`)."""
+    from vlm_vpr_ros.files.csvio import strict_float
+
+    x = strict_float(v)
+    return x if x is not None and math.isfinite(x) else None
 
 
 def coverage_pct(errs: Sequence[float | None], radii_m: Sequence[float | None]) -> float:
@@ -79,8 +103,10 @@ def coverage_pct(errs: Sequence[float | None], radii_m: Sequence[float | None]) 
     return 100.0 * hits / len(errs) if errs else 0.0
 
 
-def evaluate_results_csv(results_csv, ground_truth_csv) -> tuple[dict, dict]:
-    """Summary (JSON shape of ``vlm-vpr evaluate``) of a results CSV, plus extra statistics."""
+def evaluate_results_csv(results_csv, ground_truth_csv,
+                         thresholds: Sequence[float] = THRESHOLDS_KM) -> tuple[dict, dict]:
+    """Summary (JSON shape of ``vlm-vpr evaluate``) of a results CSV, plus extra statistics
+    (``errors_km``: the per-row errors, None for a row without an estimate)."""
     import os
 
     from vlm_vpr_ros.files.csvio import read_table
@@ -89,6 +115,7 @@ def evaluate_results_csv(results_csv, ground_truth_csv) -> tuple[dict, dict]:
     gt_base = {os.path.basename(k): v for k, v in gt.items()}
     rows = read_table(results_csv, ("file", "lat", "lon"), "results CSV")
     est, truth, sigma, sigma95, flagged, missing = [], [], [], [], 0, 0
+    kept = []
     for row in rows:
         g = gt.get(row.get("file", "")) or gt_base.get(os.path.basename(row.get("file", "")))
         if g is None:
@@ -100,9 +127,52 @@ def evaluate_results_csv(results_csv, ground_truth_csv) -> tuple[dict, dict]:
         sigma.append(_float(row.get("uncertainty_m")))
         sigma95.append(_float(row.get("radius95_m")))
         flagged += bool(row.get("flags"))
+        kept.append(row)
     errs = errors_km(est, truth)
     extra = {"coverage_pct": coverage_pct(errs, sigma),
              "coverage95_pct": (coverage_pct(errs, sigma95)
                                 if any(s is not None for s in sigma95) else None),
-             "flagged": flagged, "missing_gt": missing}
-    return summarize(errs), extra
+             "flagged": flagged, "missing_gt": missing, "errors_km": errs,
+             **verification_metrics(kept, truth, errs)}
+    return summarize(errs, thresholds), extra
+
+
+RECALL_AT = (1, 5, 10, 20)
+
+
+def _top_positions(text: str | None) -> list[tuple[float, float]]:
+    out = []
+    for item in (text or "").split("|"):
+        parts = item.split()
+        if len(parts) == 2:
+            la, lo = _float(parts[0]), _float(parts[1])
+            if la is not None and lo is not None:
+                out.append((la, lo))
+    return out
+
+
+def verification_metrics(rows: Sequence[dict], truth: Sequence[tuple[float, float]],
+                         errs: Sequence[float | None], radius_m: float = 25.0) -> dict:
+    """What users of VPR tools read (docs/verification.md): recall@1/5/10/20 within
+    ``radius_m`` over the listed candidates (``top_positions``; None without the column),
+    the share of ``status == fix`` answers and their precision within 25 m and 50 m."""
+    n = len(rows)
+    recall = None
+    if n and any(r.get("top_positions") for r in rows):
+        hits = dict.fromkeys(RECALL_AT, 0)
+        for r, g in zip(rows, truth):
+            d = [float(haversine_km(g[0], g[1], la, lo)) * 1000.0
+                 for la, lo in _top_positions(r.get("top_positions"))]
+            for k in RECALL_AT:
+                hits[k] += any(x <= radius_m for x in d[:k])
+        recall = {f"@{k}": round(100.0 * v / n, 2) for k, v in hits.items()}
+    has_status = any(r.get("status") for r in rows)
+    fix_err = [e for r, e in zip(rows, errs) if r.get("status") == "fix"]
+    nf = len(fix_err)
+    fixes = None if not has_status else {
+        "n": nf, "rate_pct": round(100.0 * nf / n, 2) if n else 0.0,
+        "precision25_pct": (round(100.0 * sum(e is not None and e * 1e3 <= 25 for e in fix_err)
+                                  / nf, 2) if nf else None),
+        "precision50_pct": (round(100.0 * sum(e is not None and e * 1e3 <= 50 for e in fix_err)
+                                  / nf, 2) if nf else None)}
+    return {"recall_pct": recall, "fixes": fixes}

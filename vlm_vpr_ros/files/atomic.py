@@ -57,6 +57,21 @@ def _fsync_dir(folder: Path) -> None:
         os.close(fd)
 
 
+def fsync_tree(folder: str | os.PathLike[str], files: bool = True) -> None:
+    """Make a folder written by another library durable before it is renamed into place (a bag
+    written by rosbags): ``fsync`` every file under it (unless ``files`` is False), then each
+    folder."""
+    folder = Path(folder)
+    if files:
+        for path in folder.rglob("*"):
+            if path.is_file() and not path.is_symlink():
+                with open(path, "rb+") as fh:
+                    os.fsync(fh.fileno())
+    for sub in [p for p in folder.rglob("*") if p.is_dir()] if files else []:
+        _fsync_dir(sub)
+    _fsync_dir(folder)
+
+
 def commit_temp(tmp: Path, path: Path) -> None:
     """Make a finished temporary file durable and move it over ``path`` (the last step of
     :func:`atomic_path`; also for files staged by hand, e.g. a download checked before use)."""

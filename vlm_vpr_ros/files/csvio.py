@@ -1,5 +1,10 @@
 """CSV tables in and out: one place for "file missing / columns missing" errors and atomic
-writes."""
+writes.
+
+Readers are strict where a lenient parse would silently change a value: numbers are plain
+ASCII decimals (``float()`` alone would read ``3_9.5591`` as 39.5591 and ``٣`` as 3), a
+column name given twice is refused (``csv.DictReader`` would keep the last one), and a NUL byte
+anywhere in the file (not only in its first 64 KiB) is "malformed CSV" naming its line."""
 
 from __future__ import annotations
 
@@ -7,6 +12,7 @@ import csv
 import logging
 import math
 import os
+import re
 from pathlib import Path
 from typing import Any, Iterable
 
@@ -25,13 +31,15 @@ def read_rows(path: str | os.PathLike[str], what: str = "CSV",
     if not path.is_file():
         raise DataError(f"{what} not found: {path}")
     try:
-        with path.open("rb") as raw:
-            if b"\x00" in raw.read(1 << 16):
-                raise DataError(f"{path}: malformed CSV: NUL bytes (a binary file, not a CSV)")
+        line = _nul_line(path)
+        if line is not None:
+            raise DataError(f"{path}:{line}: malformed CSV: a NUL byte (a binary file or a "
+                            "corrupt line, not a CSV)")
         with path.open(newline="", encoding="utf-8-sig") as fh:
             reader = csv.DictReader(fh)
             cols = [(c or "").strip() for c in reader.fieldnames or []]
             reader.fieldnames = cols
+            _check_unique_columns(path, cols)
             missing = set(required) - set(cols)
             if missing:
                 raise DataError(f"{path}: missing column(s) {sorted(missing)}; has {cols}")
@@ -45,18 +53,62 @@ def read_rows(path: str | os.PathLike[str], what: str = "CSV",
         raise DataError(f"cannot read {what} {path}: {exc.strerror or exc}") from None
 
 
+def _nul_line(path: Path) -> int | None:
+    """Line number of the first NUL byte (None when there is none); reads 1 MiB at a time."""
+    line = 1
+    with path.open("rb") as raw:
+        while chunk := raw.read(1 << 20):
+            i = chunk.find(b"\x00")
+            if i >= 0:
+                return line + chunk.count(b"\n", 0, i)
+            line += chunk.count(b"\n")
+    return None
+
+
+def _check_unique_columns(path: Path, cols: list[str]) -> None:
+    first: dict[str, int] = {}
+    for k, c in enumerate(cols, 1):
+        if c and c in first:
+            raise DataError(f"{path}: column {c!r} appears twice in the header (columns "
+                            f"{first[c]} and {k}); keep one")
+        first.setdefault(c, k)
+
+
 def read_table(path: str | os.PathLike[str], required: Iterable[str],
                what: str = "CSV") -> list[dict[str, str]]:
     """All rows of a CSV as dicts; DataError when the file or a required column is missing."""
     return [row for _, row in read_rows(path, what, required)[1]]
 
 
+#: a plain decimal number: digits, one optional point, an optional exponent (ASCII only)
+_NUMBER = re.compile(r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?", re.ASCII)
+
+
+def strict_float(value: object) -> float | None:
+    """``value`` as a float when it is a plain decimal number (surrounding spaces allowed),
+    else None: no ``_`` separators, no non-ASCII digits, no ``nan``/``inf`` words."""
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        return float(value)
+    if isinstance(value, str) and _NUMBER.fullmatch(value.strip()):
+        return float(value)
+    return None
+
+
+def parse_number(value: object, where: str, field: str) -> float:
+    """A finite number or a DataError naming ``where`` (``file:line``), the field and value."""
+    x = strict_float(value)
+    if x is None:
+        raise DataError(f"{where}: {field} {value!r} is not a number")
+    if not math.isfinite(x):
+        raise DataError(f"{where}: {field} {value} is out of range")
+    return x
+
+
 def parse_latlon(lat: object, lon: object, where: str) -> tuple[float, float]:
     """Finite WGS-84 degrees or a DataError naming ``where`` (``file:line``) and the value."""
-    try:
-        la, lo = float(lat), float(lon)  # type: ignore[arg-type]
-    except (TypeError, ValueError):
-        raise DataError(f"{where}: lat/lon not numbers: {lat!r}, {lon!r}") from None
+    la, lo = strict_float(lat), strict_float(lon)
+    if la is None or lo is None:
+        raise DataError(f"{where}: lat/lon not numbers: {lat!r}, {lon!r}")
     if not (math.isfinite(la) and -90.0 <= la <= 90.0):
         raise DataError(f"{where}: latitude {lat} out of range [-90, 90]")
     if not (math.isfinite(lo) and -180.0 <= lo <= 180.0):
@@ -97,5 +149,9 @@ def write_csv_atomic(path: str | os.PathLike[str], fieldnames: list[str],
 
 
 def read_file_column(path: str | Path) -> list[str]:
-    """The ``file`` column of a queries CSV (other columns are ignored)."""
-    return [row["file"] for row in read_table(path, ("file",), "queries CSV") if row["file"]]
+    """The ``file`` column of a queries CSV (other columns are ignored); a CSV without a single
+    file name is a DataError (a run over nothing would "succeed" with an empty result)."""
+    files = [row["file"] for row in read_table(path, ("file",), "queries CSV") if row["file"]]
+    if not files:
+        raise DataError(f"{path}: no rows with a file name")
+    return files

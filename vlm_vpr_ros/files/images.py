@@ -1,9 +1,19 @@
-"""Reading images from files and encoded bytes into RGB uint8 arrays."""
+"""Reading images from files and encoded bytes into RGB uint8 arrays.
+
+The pixel budget is checked *before* decoding, for every format: the header is read by Pillow
+(``Image.open`` is lazy: it parses the header of JPEG, PNG, WebP, TIFF, GIF, BMP, PNM,
+JPEG 2000 ... and allocates no pixels), so a 10 KB WebP that says 16383x16383 is refused before
+OpenCV would allocate 800 MB for it. Data whose header neither Pillow nor the built-in PNG/JPEG
+reader understands is refused ("not a decodable image") without being handed to the decoder.
+A file larger than :data:`MAX_FILE_BYTES` is refused before it is read."""
 
 from __future__ import annotations
 
+import io
 import os
+import re
 import struct
+import warnings
 from pathlib import Path
 
 import cv2
@@ -13,6 +23,9 @@ from vlm_vpr_ros.errors import ImageDecodeError
 
 #: bounds that reject absurd inputs before they reach the descriptor
 MAX_PIXELS = 100_000_000
+#: an image file larger than this is not read at all (an uncompressed 1e8-pixel RGB image
+#: is 300 MB)
+MAX_FILE_BYTES = 512 * 1024 * 1024
 
 
 MIN_SIDE = 8
@@ -59,15 +72,52 @@ def _header_size(data: bytes, what: str) -> tuple[int, int] | None:
     return None
 
 
+_pillow_quiet = False
+
+
+def _quiet_pillow(image_module) -> None:
+    """Pillow warns about images between 89M and 179M px when it opens them: our own budget
+    (:data:`MAX_PIXELS`) decides, so that one warning category is silenced (once)."""
+    global _pillow_quiet
+    if not _pillow_quiet:
+        warnings.filterwarnings("ignore", category=image_module.DecompressionBombWarning)
+        _pillow_quiet = True
+
+
+def header_size(data: bytes, what: str = "image") -> tuple[int, int] | None:
+    """(width, height) from the image header without decoding any pixel: Pillow for every
+    format it knows, the built-in PNG/JPEG reader when Pillow cannot identify the data; None
+    when neither can read a header. ImageDecodeError for a header past Pillow's own
+    decompression-bomb limit."""
+    from PIL import Image, UnidentifiedImageError
+
+    _quiet_pillow(Image)
+    try:
+        with Image.open(io.BytesIO(data)) as im:  # lazy: header only, no pixel allocated
+            w, h = im.size
+        return int(w), int(h)
+    except Image.DecompressionBombError as exc:  # Pillow's own limit (2 x 89.5M px)
+        px = re.search(r"\((\d+) pixels\)", str(exc))
+        n = f"{int(px.group(1)):,} px, " if px else ""
+        raise ImageDecodeError(f"{what}: unusable size (too large: {n}at most "
+                               f"{MAX_PIXELS:,})") from None
+    except (UnidentifiedImageError, OSError, ValueError, SyntaxError, struct.error,
+            EOFError, IndexError, TypeError, KeyError, ZeroDivisionError, MemoryError):
+        return _header_size(data, what)
+
+
 def decode_image_bytes(data: bytes | bytearray | memoryview, what: str = "image") -> np.ndarray:
-    """Decode JPEG/PNG/... bytes into (H, W, 3) uint8 RGB; raise ImageDecodeError naming
-    ``what`` if impossible or when the image is smaller than 8 px or larger than 1e8 px."""
+    """Decode JPEG/PNG/WebP/TIFF/... bytes into (H, W, 3) uint8 RGB; raise ImageDecodeError
+    naming ``what`` if impossible or when the image is smaller than 8 px or larger than 1e8 px
+    (checked from the header, before any pixel is decoded)."""
     raw = bytes(data)
     if not raw:
         raise ImageDecodeError(f"{what}: empty data")
-    size = _header_size(raw, what)
-    if size is not None:
-        _check_size(size[0], size[1], what)
+    size = header_size(raw, what)
+    if size is None:
+        raise ImageDecodeError(f"{what}: not a decodable image ({len(raw)} bytes with no "
+                               "JPEG, PNG, WebP, TIFF, GIF, BMP ... header)")
+    _check_size(size[0], size[1], what)
     buf = np.frombuffer(raw, dtype=np.uint8)
     img = cv2.imdecode(buf, cv2.IMREAD_COLOR)
     if img is None or img.size == 0:
@@ -80,6 +130,10 @@ def load_image(path: str | os.PathLike[str]) -> np.ndarray:
     """Read an image file into (H, W, 3) uint8 RGB."""
     path = Path(path)
     try:
+        size = path.stat().st_size
+        if size > MAX_FILE_BYTES:
+            raise ImageDecodeError(f"{path}: unusable file size {size:,} bytes (at most "
+                                   f"{MAX_FILE_BYTES:,})")
         data = path.read_bytes()
     except OSError as exc:
         raise ImageDecodeError(f"cannot read image {path}: {exc}") from exc

@@ -15,8 +15,10 @@ e.g. a v2 map build)::
   not suggest deleting it;
 * :func:`check_not_inside` keeps outputs out of inputs (``evaluate-bag BAG --out BAG``);
 * the staging folder ``PARENT/.NAME.partial`` is fixed, so a resumable writer (the map build)
-  finds its finished work there after a crash or a full disk; a lock file keeps two processes
-  from writing the same target;
+  finds its finished work there after a crash or a full disk;
+* one writer at a time: :class:`~vlm_vpr_ros.files.lock.WriterLock` on ``PARENT/.NAME.lock``,
+  the same lock that map edits (``map add/remove``) take, so a rebuild never swaps a map while
+  an edit writes into it (and the other way round);
 * write failures (disk full, permissions) become :class:`OutputError` with one clear line.
 """
 
@@ -32,12 +34,13 @@ from typing import Callable, Iterable
 
 from vlm_vpr_ros.errors import OutputError
 from vlm_vpr_ros.files.atomic import describe_os_error
+from vlm_vpr_ros.files.lock import WriterLock
 
 log = logging.getLogger(__name__)
 
 #: marker file written into every bag / evaluation folder this tool creates
 MARKER = ".vlm_vpr_output.json"
-KINDS = ("map", "bag", "evaluation")
+KINDS = ("map", "bag", "evaluation", "shards")
 
 
 def _csv_header(path: Path) -> list[str]:
@@ -69,7 +72,17 @@ def written_by_us(path: Path, kind: str) -> bool:
     if kind == "evaluation":
         return ((path / "summary.json").is_file()
                 and _csv_header(path / "frames.csv")[:3] == ["index", "stamp", "key"])
+    if kind == "shards":  # written by `vlm-vpr describe` before the marker existed
+        return _shards_meta(path / "describe.json") or (path / ".progress" / "job.json").is_file()
     return False
+
+
+def _shards_meta(path: Path) -> bool:
+    try:
+        meta = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    return isinstance(meta, dict) and meta.get("format") == "vlm_vpr_ros.descriptors"
 
 
 def write_marker(folder: Path, kind: str) -> None:
@@ -81,7 +94,14 @@ def write_marker(folder: Path, kind: str) -> None:
 
 _WHAT = {"map": "a map (no vlm_vpr_ros manifest.json)",
          "bag": "a bag written by 'vlm-vpr bag make'",
-         "evaluation": "an evaluation folder written by 'vlm-vpr evaluate-bag'"}
+         "evaluation": "an evaluation folder written by 'vlm-vpr evaluate-bag'",
+         "shards": "a descriptor shard folder written by 'vlm-vpr describe'"}
+
+
+_WRITER = {"map": "a map build", "bag": "bag make", "evaluation": "evaluate-bag",
+           "shards": "describe"}
+_NOUN = {"map": "a map", "bag": "a bag", "evaluation": "an evaluation",
+         "shards": "descriptor shards of another job (other images or settings)"}
 
 
 def check_target(target: Path, kind: str, overwrite: bool) -> bool:
@@ -98,8 +118,8 @@ def check_target(target: Path, kind: str, overwrite: bool) -> bool:
         raise OutputError(f"{target} exists and is not {_WHAT[kind]}; it is left untouched: "
                           "choose another --out")
     if not overwrite:
-        raise OutputError(f"{target} already holds a {kind}; pass --overwrite to replace it "
-                          "(the old one stays until the new one is complete)")
+        raise OutputError(f"{target} already holds {_NOUN[kind]}; pass --overwrite to replace "
+                          "it (the old one stays until the new one is complete)")
     return True
 
 
@@ -127,8 +147,13 @@ class StagedOutput:
     """Build an output folder next to its target, then swap it in atomically."""
 
     def __init__(self, target: str | os.PathLike[str], kind: str, overwrite: bool = False,
-                 resumable: bool = False, marker: bool = False) -> None:
+                 resumable: bool = False, marker: bool = False,
+                 adopt: Callable[[Path], bool] | None = None) -> None:
+        """``adopt(target)``: True when the target holds this writer's own unfinished work
+        (written in place by an older version): it is then moved into the staging folder and
+        resumed there (resumable writers only)."""
         self.target = Path(target)
+        self.adopt = adopt
         self.kind, self.overwrite, self.resumable, self.marker = kind, overwrite, resumable, marker
         name = self.target.name
         if not name or name in (".", ".."):
@@ -136,18 +161,22 @@ class StagedOutput:
         self.root = self.target.parent / f".{name}.partial"
         self.path = self.root / name  # the new output is built here
         self.work = self.root / "work"  # resumable scratch (kept after failures)
-        self._lock_fh = None
+        self._lock = WriterLock(self.target, _WRITER[kind])
         self.committed = False
 
     # -- context manager -----
     def __enter__(self) -> "StagedOutput":
+        self._lock.acquire()
         try:
             self.root.mkdir(parents=True, exist_ok=True)
-            self._lock()
             old = self.root / ".old"
             if old.is_dir() and not self.target.exists():  # a swap cut short by a crash
                 os.replace(old, self.target)
                 log.warning("restored %s from an interrupted swap", self.target)
+            if (self.adopt is not None and self.resumable and self.target.is_dir()
+                    and not self.path.exists() and self.adopt(self.target)):
+                os.replace(self.target, self.path)
+                log.info("resuming the unfinished %s in %s", self.kind, self.target)
         except OSError as exc:
             self._unlock()
             raise OutputError(describe_os_error(exc)) from None
@@ -155,7 +184,7 @@ class StagedOutput:
             self.had_old = check_target(self.target, self.kind, self.overwrite)
         except OutputError:
             self._unlock()
-            if not any(p.name != ".lock" for p in self.root.iterdir()):
+            if not any(self.root.iterdir()):
                 shutil.rmtree(self.root, ignore_errors=True)
             raise
         try:
@@ -178,27 +207,16 @@ class StagedOutput:
         """Keep resumable work (the next run continues it); drop everything else."""
         if self.resumable and exc_type is not None:
             remove_temp_files(self.root)
+            if not any(p.is_file() for p in self.root.rglob("*")):
+                shutil.rmtree(self.root, ignore_errors=True)  # nothing done yet
+                return
             log.info("partial output kept in %s; run the same command again to resume",
                      self.root)
             return
         shutil.rmtree(self.root, ignore_errors=True)
 
-    def _lock(self) -> None:
-        import fcntl
-
-        self._lock_fh = open(self.root / ".lock", "w")
-        try:
-            fcntl.flock(self._lock_fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            self._lock_fh.close()
-            self._lock_fh = None
-            raise OutputError(f"another process is writing {self.target} (lock "
-                              f"{self.root / '.lock'}); wait for it to finish") from None
-
     def _unlock(self) -> None:
-        if self._lock_fh is not None:
-            self._lock_fh.close()
-            self._lock_fh = None
+        self._lock.release()
 
     # -- the swap -----
     def commit(self, validate: Callable[[Path], object] | None = None) -> Path:
@@ -225,8 +243,8 @@ class StagedOutput:
         except OSError as exc:
             raise OutputError(describe_os_error(exc, self.target)) from None
         self.committed = True
+        shutil.rmtree(self.root, ignore_errors=True)  # still locked: no writer is staging
         self._unlock()
-        shutil.rmtree(self.root, ignore_errors=True)
         return self.target
 
 

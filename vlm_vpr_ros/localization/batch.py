@@ -25,9 +25,16 @@ T = TypeVar("T")
 R = TypeVar("R")
 
 RESULT_FIELDS = ["file", "lat", "lon", "prior_lat", "prior_lon", "prior_source", "prior_reason",
-                 "submap", "ref_id", "uncertainty_m", "radius95_m", "confidence", "fusion",
-                 "n_candidates", "flags",
-                 "descriptor_ms", "retrieval_ms", "rerank_ms", "prior_latency_s"]
+                 "prior_parse", "submap", "ref_id", "uncertainty_m", "radius95_m", "confidence",
+                 "fusion", "n_candidates", "flags", "status", "p_correct", "inliers",
+                 "inlier_ratio", "descriptor_ms", "retrieval_ms", "rerank_ms", "verify_ms",
+                 "prior_latency_s", "top_ids", "top_positions"]
+#: called with (file, image, hypothesis) after each localized query (``--save-matches``)
+OnResult = Callable[[str, np.ndarray, Hypothesis], None]
+
+#: columns added after results files were first written: empty in older files (resume)
+ADDED_FIELDS = ("prior_parse", "status", "p_correct", "inliers", "inlier_ratio", "verify_ms",
+                "top_ids", "top_positions")
 
 
 def started_ahead(items: Iterable[T], start: Callable[[T], R],
@@ -45,8 +52,9 @@ def started_ahead(items: Iterable[T], start: Callable[[T], R],
 
 def localize_files(pipeline: LocalizationPipeline, provider: PriorProvider,
                    images_dir: str | Path, files: Sequence[str], prior_timeout_s: float = 60.0,
-                   window: int = 4) -> Iterator[dict]:
-    """Yield one result row per file, in order; unreadable images give a flagged empty row."""
+                   window: int = 4, on_result: OnResult | None = None) -> Iterator[dict]:
+    """Yield one result row per file, in order; unreadable images give a flagged empty row.
+    The query's local features (verification) are computed while its prior is pending."""
     images_dir = Path(images_dir)
 
     def start(f: str) -> tuple[np.ndarray | None, Any, str]:
@@ -65,10 +73,12 @@ def localize_files(pipeline: LocalizationPipeline, provider: PriorProvider,
             continue
         try:
             t0 = time.perf_counter()
-            desc = pipeline.describe(image)
+            query = pipeline.describe_query(image)
             t_desc = (time.perf_counter() - t0) * 1e3
             prior = wait_prior(fut, provider.name, prior_timeout_s)
-            hyp = pipeline.localize_descriptor(desc, prior)
+            hyp = pipeline.localize_descriptor(query.desc, prior, query.local)
+            if on_result is not None:
+                on_result(f, image, hyp)
         except VlmVprError as exc:
             log.warning("query %s failed: %s", f, exc)
             yield {"file": f, "flags": "error", "prior_reason": str(exc)}
@@ -113,6 +123,8 @@ def read_done_rows(path: Path) -> list[dict]:
         text = text[:text.rfind("\n") + 1]
     rows = []
     for row in csv.DictReader(io.StringIO(text, newline="")):
+        for k in ADDED_FIELDS:  # a file written before the column existed
+            row.setdefault(k, "")
         if any(row.get(k) is None for k in RESULT_FIELDS) or not row.get("file"):
             continue
         if "error" in (row.get("flags") or "").split("|"):

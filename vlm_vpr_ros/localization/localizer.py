@@ -198,7 +198,7 @@ class Localizer:
         for d, si, j in found:
             sub = self.map.submaps[si]
             out.append(Candidate(sub.ids[j], float(sub.coords[j, 0]), float(sub.coords[j, 1]),
-                                 d, sub.id))
+                                 d, sub.id, row=int(j)))
         return out
 
     # -- the whole query ------------------------------------------------------------------------
@@ -264,7 +264,8 @@ class Localizer:
                         0 if prior is None and cfg.fusion == "paper" else None))
         g_km = post.extra["prior_km"]
         out = [Candidate(c.ref_id, c.lat, c.lon, c.l2_sq, c.submap,
-                         None if g_km is None else float(g_km[i]), float(post.weights[i]))
+                         None if g_km is None else float(g_km[i]), float(post.weights[i]),
+                         row=c.row)
                for i, c in enumerate(cands)]
         best = post.best
         if cfg.fusion == "paper" and prior is not None and cfg.rerank:

@@ -36,8 +36,15 @@ def open_query_descriptors(path: str | Path, n_queries: int, dim: int) -> np.nda
 
 def localize_descriptors(localizer: Localizer, provider: PriorProvider, files: Sequence[str],
                          descs: np.ndarray, images_dir: str | Path | None = None,
-                         prior_timeout_s: float = 60.0, window: int = 4) -> Iterator[dict]:
-    """Yield one result row per query (columns of batch.RESULT_FIELDS), in order."""
+                         prior_timeout_s: float = 60.0, window: int = 4,
+                         verifier: Any = None, policy: Any = None) -> Iterator[dict]:
+    """Yield one result row per query (columns of batch.RESULT_FIELDS), in order. With a
+    ``verifier`` and ``images_dir``, answers are verified from the query images (else flagged
+    ``unverified``); statuses follow ``policy`` (default StatusPolicy)."""
+    from vlm_vpr_ros.localization.pipeline import verify_and_stamp
+    from vlm_vpr_ros.localization.verification.status import StatusPolicy
+
+    policy = policy or StatusPolicy()
 
     def start(item: tuple[int, str]) -> Any:
         f = item[1]
@@ -50,9 +57,9 @@ def localize_descriptors(localizer: Localizer, provider: PriorProvider, files: S
                 query = PriorQuery(image=load_image(path), encoded=path.read_bytes(), key=f)
             except (OSError, ImageDecodeError) as exc:
                 log.warning("query %s: image for the prior unreadable (%s)", f, exc)
-        return provider.request(query)
+        return query.image, provider.request(query)
 
-    for (i, f), fut in started_ahead(enumerate(files), start, window):
+    for (i, f), (image, fut) in started_ahead(enumerate(files), start, window):
         q = np.asarray(descs[i], dtype=np.float32)
         if not np.all(np.isfinite(q)) or not q.any():
             yield {"file": f, "flags": "bad_descriptor",
@@ -61,6 +68,9 @@ def localize_descriptors(localizer: Localizer, provider: PriorProvider, files: S
         try:
             prior = wait_prior(fut, provider.name, prior_timeout_s)
             hyp = localizer.localize(q, prior)
+            local = (verifier.query_features(image) if verifier is not None and verifier.enabled
+                     and image is not None else None)
+            verify_and_stamp(hyp, local, verifier, localizer, policy)
         except VlmVprError as exc:
             log.warning("query %s failed: %s", f, exc)
             yield {"file": f, "flags": "error", "prior_reason": str(exc)}

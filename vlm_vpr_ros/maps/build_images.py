@@ -64,11 +64,11 @@ def _progress(iterable, total: int, desc: str, enabled: bool):
 
 
 def _fingerprint(rows, descriptor: GlobalDescriptor, partition: str, clusters: int,
-                 index: str) -> str:
+                 index: Any, local: Mapping | None = None) -> str:
     h = hashlib.sha256()
     ident = {k: v for k, v in descriptor.identity().items() if k != "dim"}
-    h.update(json.dumps([ident, partition, clusters, index], sort_keys=True,
-                        default=str).encode())
+    h.update(json.dumps([ident, partition, clusters, index] + ([local] if local else []),
+                        sort_keys=True, default=str).encode())
     for f, la, lo in rows:
         h.update(f"{f}\t{la!r}\t{lo!r}\n".encode())
     return h.hexdigest()
@@ -109,8 +109,12 @@ def build_map(images_dir: str | Path, coords_csv: str | Path, out_dir: str | Pat
               partition: str = "kmeans", clusters: int = 100, overwrite: bool = False,
               progress: bool = True, seed: int = 0, index: str = "flat",
               ram_budget_mb: float | None = None, max_submap_size: int | None = None,
-              rerank_factor: int = DEFAULT_RERANK_FACTOR, engine: Any = None) -> ReferenceMap:
-    """Build (or resume building) a map folder; see the README "Map format" section.
+              rerank_factor: int = DEFAULT_RERANK_FACTOR, engine: Any = None,
+              local_features: str = "sift", feature_options: Mapping | None = None,
+              matcher_options: Mapping | None = None) -> ReferenceMap:
+    """Build (or resume building) a map folder; the format is in docs/maps.md ("Map format").
+    ``local_features``: verification preset whose local features are stored in the map
+    ("sift", "disk_lightglue"; "none": no features, answers unverified; docs/verification.md).
     ``engine``: describe (and fit), partition and index elsewhere, e.g. on Ray
     (``vlm_vpr_ros.distributed.build``); by default everything runs in this process.
 
@@ -123,6 +127,9 @@ def build_map(images_dir: str | Path, coords_csv: str | Path, out_dir: str | Pat
     rows = read_coords_csv(coords_csv)
     desc = create_descriptor(descriptor, descriptor_config)
     check_kind(index)  # validate the name before any work
+    from vlm_vpr_ros.localization.verification.build import ReferenceExtractor
+
+    refx = ReferenceExtractor(desc, local_features, feature_options, matcher_options)
     if index == "auto" and ram_budget_mb is None:
         raise MapError("--index auto needs --ram-budget-mb")
     extra_opts = (ram_budget_mb, max_submap_size, rerank_factor)
@@ -130,7 +137,8 @@ def build_map(images_dir: str | Path, coords_csv: str | Path, out_dir: str | Pat
                                coords_csv], allow_out_inside=True)
     fp = _fingerprint(rows, desc, partition, clusters,
                       index if extra_opts == (None, None, DEFAULT_RERANK_FACTOR)
-                      else [index, *extra_opts])
+                      else [index, *extra_opts],
+                      refx.identity() if refx.enabled else None)
     local = images_dir if isinstance(images_dir, Path) else _local_path(str(images_dir))
     fp_images = images_fingerprint(local, rows) if local is not None else ""
     if (out_dir / MANIFEST).is_file() and written_by_us(out_dir, "map") and not overwrite:
@@ -152,7 +160,7 @@ def build_map(images_dir: str | Path, coords_csv: str | Path, out_dir: str | Pat
     with StagedOutput(out_dir, "map", overwrite, resumable=True) as stage:
         ref_map = _build_staged(images_dir, rows, desc, stage, fp, fp_images, partition,
                                 clusters, seed, index, progress, out_dir, engine,
-                                extra_opts)
+                                extra_opts, refx)
     ref_map.path = out_dir
     return ref_map
 
@@ -160,7 +168,8 @@ def build_map(images_dir: str | Path, coords_csv: str | Path, out_dir: str | Pat
 def _build_staged(images_dir: Any, rows, desc: GlobalDescriptor, stage: StagedOutput, fp: str,
                   fp_images: str, partition: str, clusters: int, seed: int, index: str,
                   progress: bool, out_dir: Path, engine: Any = None,
-                  extra_opts: tuple = (None, None, DEFAULT_RERANK_FACTOR)) -> ReferenceMap:
+                  extra_opts: tuple = (None, None, DEFAULT_RERANK_FACTOR),
+                  refx: Any = None) -> ReferenceMap:
     ram_budget_mb, max_submap_size, rerank_factor = extra_opts
     work = stage.work
     work.mkdir(parents=True, exist_ok=True)
@@ -180,10 +189,12 @@ def _build_staged(images_dir: Any, rows, desc: GlobalDescriptor, stage: StagedOu
     t0 = time.monotonic()
     if engine is not None:
         feats, ok = engine.describe(desc, images_dir, rows, work, progress)
+        if refx is not None and refx.enabled:
+            _extract_local(refx, images_dir, rows, work, progress, ok)
     else:
         if desc.needs_fit:
             _fit(desc, images_dir, rows, work, progress)
-        feats, ok = _extract(desc, images_dir, rows, work, progress)
+        feats, ok = _extract(desc, images_dir, rows, work, progress, refx)
     identity = desc.identity()
     skipped = [rows[i][0] for i in range(len(rows)) if not ok[i]]
     keep = np.flatnonzero(ok)
@@ -201,6 +212,8 @@ def _build_staged(images_dir: Any, rows, desc: GlobalDescriptor, stage: StagedOu
         shutil.rmtree(stage.path)  # a half-saved folder of an earlier attempt
     ref_map.save(stage.path)
     write_map_calibration(ref_map, feats[keep], coords)
+    if refx is not None and refx.enabled:
+        write_local_features(ref_map, refx, ChunkFeatures(work, rows, refx), progress)
     stage.commit(validate=lambda p: ReferenceMap.load(p))
     dt = time.monotonic() - t0
     if skipped:
@@ -224,6 +237,37 @@ def write_map_calibration(ref_map: ReferenceMap, desc: np.ndarray, coords: np.nd
              doc["loo"].get("queries", 0), doc["visual_scale"], time.monotonic() - t0)
 
 
+def write_local_features(ref_map: ReferenceMap, refx: Any, features_of: Any,
+                         progress: bool = False) -> None:
+    """Store the references' local features in the saved map and calibrate ``p_correct`` by
+    leave-one-out on them (docs/verification.md)."""
+    from vlm_vpr_ros.localization.verification.build import calibrate_map, store_features
+
+    t0 = time.monotonic()
+    store_features(ref_map, features_of, refx)
+    log.info("local features stored (%s, %.0f kB per reference), %.1f s",
+             refx.preset.name, ref_map.manifest["local_features"]["bytes"]
+             / max(1, ref_map.n_references) / 1e3, time.monotonic() - t0)
+    calibrate_map(ref_map, progress=progress, matcher_options=refx.matcher_options)
+
+
+class ChunkFeatures:
+    """Local features of the build's rows, read back from the resumable chunk files."""
+
+    def __init__(self, work: Path, rows, refx: Any) -> None:
+        self.work, self.refx, self.pos = work, refx, {f: i for i, (f, _, _) in enumerate(rows)}
+        self._open: dict[int, Any] = {}
+
+    def __call__(self, ref_id: str):
+        from vlm_vpr_ros.maps.features import read_features
+
+        i = self.pos[ref_id]
+        s = i - i % CHUNK
+        if s not in self._open:
+            self._open = {s: read_features(self.work, f"chunk_{s:08d}")}
+        return self._open[s](i - s)
+
+
 def fit_sample_indices(n: int, desc: GlobalDescriptor) -> np.ndarray:
     """Rows a stateful descriptor is fitted on: ``fit_max_images`` evenly spread rows (the
     same for every engine, so local and distributed builds learn the same state)."""
@@ -245,7 +289,13 @@ def _fit(desc: GlobalDescriptor, root: Path, rows, work: Path, progress: bool) -
     atomic_save_npz(state_file, desc.state_arrays())
 
 
-def _extract(desc: GlobalDescriptor, root: Path, rows, work: Path, progress: bool):
+def _extract(desc: GlobalDescriptor, root: Path, rows, work: Path, progress: bool,
+             refx: Any = None):
+    """Describe every row in resumable chunks (and store the chunk's local features when
+    ``refx`` extracts them)."""
+    from vlm_vpr_ros.maps.features import feature_files, write_submap_features
+
+    local = refx is not None and refx.enabled
     n = len(rows)
     feats = np.zeros((n, desc.dim), np.float32)
     ok = np.zeros(n, bool)
@@ -253,8 +303,10 @@ def _extract(desc: GlobalDescriptor, root: Path, rows, work: Path, progress: boo
     bar = _progress(None, n, "describe", progress) if progress else None
     for s in starts:
         part, okf = work / f"chunk_{s:08d}.npy", work / f"chunk_{s:08d}.ok.npy"
+        lf_done = not local or all((work / r).exists()
+                                   for r in feature_files(f"chunk_{s:08d}").values())
         e = min(n, s + CHUNK)
-        if part.exists() and okf.exists():
+        if part.exists() and okf.exists() and lf_done:
             feats[s:e], ok[s:e] = np.load(part), np.load(okf)
         else:
             good, images = [], []
@@ -263,8 +315,16 @@ def _extract(desc: GlobalDescriptor, root: Path, rows, work: Path, progress: boo
                     good.append(i)
                     images.append(im)
             if images:
-                feats[good] = desc.describe(images)
+                feats[good], lf = refx.describe(images) if refx is not None else \
+                    (desc.describe(images), None)
                 ok[good] = True
+            if local:
+                by_row = dict(zip(good, lf)) if images else {}
+                empty = _empty_features(refx)
+                write_submap_features(work, f"chunk_{s:08d}",
+                                      [by_row.get(i, empty) for i in range(s, e)],
+                                      refx.extractor.descriptor_dtype,
+                                      refx.extractor.descriptor_dim)
             atomic_save_npy(part, feats[s:e])
             atomic_save_npy(okf, ok[s:e])
         if bar is not None:
@@ -272,3 +332,39 @@ def _extract(desc: GlobalDescriptor, root: Path, rows, work: Path, progress: boo
     if bar is not None:
         bar.close()
     return feats, ok
+
+
+def _extract_local(refx: Any, images_dir: Any, rows, work: Path, progress: bool,
+                   ok: np.ndarray) -> None:
+    """Local features of the described rows, in this process, in the same resumable chunk
+    files as :func:`_extract` (builds whose descriptors came from an engine)."""
+    from vlm_vpr_ros.distributed.sources import ImageSource
+    from vlm_vpr_ros.maps.features import feature_files, write_submap_features
+
+    source = ImageSource(str(images_dir))
+    x, empty = refx.extractor, _empty_features(refx)
+    bar = _progress(None, len(rows), "local features", progress) if progress else None
+    for s in range(0, len(rows), CHUNK):
+        e, stem = min(len(rows), s + CHUNK), f"chunk_{s:08d}"
+        if not all((work / r).exists() for r in feature_files(stem).values()):
+            feats = []
+            for i in range(s, e):
+                try:
+                    feats.append(x.extract(source.load(rows[i][0]), refx.preset.max_keypoints)
+                                 if ok[i] else empty)
+                except ImageDecodeError as exc:  # read by the engine, not here: a change
+                    raise MapError(f"reference {rows[i][0]} became unreadable during the "
+                                   f"build: {exc}") from None
+            write_submap_features(work, stem, feats, x.descriptor_dtype, x.descriptor_dim)
+        if bar is not None:
+            bar.update(e - s)
+    if bar is not None:
+        bar.close()
+
+
+def _empty_features(refx: Any):
+    from vlm_vpr_ros.types import LocalFeatures
+
+    dim, dtype = refx.extractor.descriptor_dim, refx.extractor.descriptor_dtype
+    return LocalFeatures(np.zeros((0, 2), np.float32), np.zeros((0, dim), dtype), (0, 0))
+

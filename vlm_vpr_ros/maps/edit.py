@@ -11,7 +11,8 @@ manifest is replaced last with ``os.replace`` (the commit point). The files it n
 stay one more generation (manifest ``retired``) so that a reader of the previous manifest —
 a node that opened submaps lazily — keeps a complete map until it reloads; the next edit
 deletes them. An edit that fails before the commit deletes what it wrote and leaves the old
-map as it was. One edit at a time (``MAP/.edit.lock``).
+map as it was. One writer at a time: the map's writer lock (``PARENT/.MAP.lock``,
+:mod:`vlm_vpr_ros.files.lock`), shared with ``build-map``.
 
 Maps may hold their reference images (teach maps built from a bag,
 :mod:`vlm_vpr_ros.maps.map_images`): adding to such a map copies the new images in; removing
@@ -31,9 +32,13 @@ from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
-from vlm_vpr_ros.errors import DataError, ImageDecodeError, MapError
+from vlm_vpr_ros.errors import (ConfigError, DataError, DescriptorError, ImageDecodeError,
+                                MapError)
 from vlm_vpr_ros.geodesy import haversine_km, spherical_mean
+from vlm_vpr_ros.localization.verification.build import (calibrate_map, edit_features,
+                                                         map_extractor)
 from vlm_vpr_ros.maps import map_images
+from vlm_vpr_ros.maps.features import FeatureStore
 from vlm_vpr_ros.maps.map_images import IMAGES_DIR, image_index, safe_rel, write_image_index
 from vlm_vpr_ros.maps.reference_map import ReferenceMap
 from vlm_vpr_ros.maps.submap import Submap, submap_radius_km
@@ -117,11 +122,13 @@ def assign_submaps(ref_map: ReferenceMap, coords: np.ndarray, seed: int = 0) -> 
 
 
 # -- add ------------------------------------------------------------------------------------------
-def _describe(desc, root: Path, rows: Sequence[tuple[str, float, float]],
-              progress: bool) -> tuple[np.ndarray, list[int], list[str]]:
+def _describe(refx, root: Path, rows: Sequence[tuple[str, float, float]],
+              progress: bool) -> tuple[np.ndarray, list[int], list[str], list]:
+    """Global descriptors, rows read, rows skipped and local features (empty when the map
+    stores none) of the references to add."""
     from vlm_vpr_ros.files.images import load_image
 
-    feats, good, skipped = [], [], []
+    feats, good, skipped, local = [], [], [], []
     bar = None
     if progress:
         from tqdm import tqdm
@@ -137,14 +144,17 @@ def _describe(desc, root: Path, rows: Sequence[tuple[str, float, float]],
                 log.warning("skipping reference: %s", exc)
                 skipped.append(rows[i][0])
         if images:
-            feats.append(np.asarray(desc.describe(images), np.float32))
+            g, lf = refx.describe(images)
+            feats.append(np.asarray(g, np.float32))
+            local += lf or []
             good += idx
         if bar is not None:
             bar.update(min(len(rows), s + CHUNK) - s)
     if bar is not None:
         bar.close()
-    dim = desc.dim
-    return (np.concatenate(feats) if feats else np.zeros((0, dim), np.float32)), good, skipped
+    dim = refx.descriptor.dim
+    return ((np.concatenate(feats) if feats else np.zeros((0, dim), np.float32)), good, skipped,
+            local)
 
 
 def _vectors(sub: Any) -> np.ndarray:
@@ -221,7 +231,7 @@ def add_references(map_dir: str | os.PathLike[str], images_dir: str | os.PathLik
     path, root = Path(map_dir), Path(images_dir)
     if not rows:
         raise DataError("nothing to add: no references given")
-    with edit_lock(path):
+    with edit_lock(path, "map add"):
         ref_map = ReferenceMap.load(path, verify=True)
         built = ref_map.descriptor_identity.get("config", {})
         other = {k: v for k, v in dict(descriptor_config or {}).items()
@@ -245,7 +255,9 @@ def add_references(map_dir: str | os.PathLike[str], images_dir: str | os.PathLik
             for f, _, _ in rows:
                 safe_rel(f)
         t0 = time.monotonic()
-        feats, good, skipped = _describe(desc, root, rows, progress)
+        refx = map_extractor(ref_map, desc)  # the map's own local features, if it stores any
+        store = FeatureStore.open(path, manifest)
+        feats, good, skipped, local = _describe(refx, root, rows, progress)
         if not good:
             raise MapError(f"no image could be read among the {len(rows)} references to add")
         coords = np.array([[rows[i][1], rows[i][2]] for i in good], np.float64)
@@ -254,11 +266,16 @@ def add_references(map_dir: str | os.PathLike[str], images_dir: str | os.PathLik
         gen = int(manifest.get("generation", 0)) + 1
         tx = Transaction(path, manifest)
         res = EditResult(path, "add", gen, 0, 0, count=len(ids), skipped=skipped)
+        rewritten: dict[str, list] = {}
         try:
             entries = {e["id"]: e for e in tx.new["submaps"]}
             for sid in sorted(set(target)):
                 sel = [i for i, t in enumerate(target) if t == sid]
                 k = ref_map.submap_index(sid)
+                if store is not None:
+                    old_lf = [] if k is None else [store.get(sid, j)
+                                                   for j in range(ref_map.submaps[k].count)]
+                    rewritten[sid] = old_lf + [local[i] for i in sel]
                 if k is None:
                     sub = _rebuilt(ref_map, sid, feats[sel], coords[sel],
                                    [ids[i] for i in sel])
@@ -275,14 +292,28 @@ def add_references(map_dir: str | os.PathLike[str], images_dir: str | os.PathLik
             if store_images:
                 map_images.store_images(tx, root, ids, image_index(path, manifest), gen,
                                         move_images)
+            edit_features(tx, ref_map, gen, rewritten, [])
             finish_manifest(tx.new, list(entries.values()), gen, "add", len(ids), source)
             tx.commit()
         except BaseException:
             tx.rollback()
             raise
+        recalibrate(path, store)
         res.n_references, res.n_submaps = tx.new["n_references"], tx.new["n_submaps"]
         log.info("%s (%.1f s)", res.describe(), time.monotonic() - t0)
         return res
+
+
+def recalibrate(path: Path, store: Any) -> None:
+    """After a committed edit of a map with local features: its leave-one-out calibration of
+    p_correct again (the look-alikes of the map changed; docs/verification.md)."""
+    if store is None:
+        return
+    try:
+        calibrate_map(ReferenceMap.load(path, verify=False))
+    except (ConfigError, DescriptorError) as exc:  # e.g. learned weights not at hand here
+        log.warning("%s: p_correct keeps its earlier calibration (%s); recalibrate where the "
+                    "matcher's weights are", path, exc)
 
 
 # -- remove ---------------------------------------------------------------------------------------
@@ -311,7 +342,7 @@ def remove_references(map_dir: str | os.PathLike[str], ids: Iterable[str],
     """Remove references by id; unknown ids are an error (nothing is changed)."""
     path = Path(map_dir)
     drop = set(ids)
-    with edit_lock(path):
+    with edit_lock(path, "map remove"):
         ref_map = ReferenceMap.load(path, verify=True)
         unknown = sorted(drop - set(ref_map.all_ids()))
         if unknown:
@@ -324,6 +355,8 @@ def remove_references(map_dir: str | os.PathLike[str], ids: Iterable[str],
         gen = int(manifest.get("generation", 0)) + 1
         tx = Transaction(path, manifest)
         res = EditResult(path, "remove", gen, 0, 0, count=len(drop))
+        store = FeatureStore.open(path, manifest)
+        rewritten: dict[str, list] = {}
         try:
             entries = {e["id"]: e for e in tx.new["submaps"]}
             for sub in ref_map.submaps:
@@ -339,6 +372,8 @@ def remove_references(map_dir: str | os.PathLike[str], ids: Iterable[str],
                 new = _rebuilt(ref_map, sub.id, _vectors(sub)[keep],
                                np.asarray(sub.coords)[keep], [sub.ids[j] for j in keep],
                                like=sub)
+                if store is not None:
+                    rewritten[sub.id] = [store.get(sub.id, j) for j in keep]
                 entries[sub.id] = tx.write_submap(new, gen)
                 res.changed.append(sub.id)
             index = image_index(path, manifest)
@@ -348,11 +383,13 @@ def remove_references(map_dir: str | os.PathLike[str], ids: Iterable[str],
                     del index[i]
                     tx.new["files"].pop(f"{IMAGES_DIR}/{i}", None)
                 write_image_index(tx, index, gen)
+            edit_features(tx, ref_map, gen, rewritten, res.dropped)
             finish_manifest(tx.new, list(entries.values()), gen, "remove", len(drop), source)
             tx.commit()
         except BaseException:
             tx.rollback()
             raise
+        recalibrate(path, store)
         for i in stored:  # after the commit: the old manifest no longer needs them
             with contextlib.suppress(FileNotFoundError):
                 (path / IMAGES_DIR / i).unlink()

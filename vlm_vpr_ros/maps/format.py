@@ -1,13 +1,26 @@
 """The map folder's contract: format constants, the manifest, and the checks made at load.
 
 Every mismatch is a :class:`~vlm_vpr_ros.errors.MapError` with a message naming the file or
-manifest field. The layouts of the two format versions are described in
+manifest field.
+
+Content checks (on by default, :func:`check_content`): sizes alone miss files swapped between
+submaps or rewritten in place with the same size, and the full sha256 pass (``map verify``) reads
+every byte. So every file's manifest entry also carries a fingerprint that is cheap to check:
+files up to :data:`SMALL_FILE_BYTES` are checked whole against their sha256; larger ones against
+``sample``, the sha256 of their size and :data:`SAMPLE_PAGES` pages (first, last and evenly
+spaced between; the first page of a ``.npy``/FAISS file holds its header and first rows). A file
+that differs anywhere in a sampled page, or whose first rows differ (any swap), is caught; a
+change confined to unsampled pages is left to ``map verify``. Maps written before fingerprints
+existed have no ``sample``: their small files are still checked by sha256, the others by size. The layouts of the two format versions are described in
 :mod:`vlm_vpr_ros.maps.store` (version 2, written today) and :mod:`vlm_vpr_ros.maps.v1`.
 """
 
 from __future__ import annotations
 
+import hashlib
+import io
 import json
+import os
 import re
 import zipfile
 from pathlib import Path
@@ -27,6 +40,12 @@ MANIFEST = "manifest.json"
 IDENTITY_KEYS = ("name", "dim", "release", "preprocessing")
 REQUIRED_KEYS = ("format", "version", "descriptor", "metric", "partition", "n_references",
                  "submaps", "files")
+#: files up to this size are checked whole (sha256) when a map is opened
+SMALL_FILE_BYTES = 256 * 1024
+#: larger files: the sha256 of this many 4 KiB pages (and the size) is their fingerprint
+SAMPLE_PAGES = 4
+PAGE_BYTES = 4096
+_SAMPLE_TAG = b"vlm_vpr_ros.sample.v1"
 
 
 def read_manifest(path: Path) -> dict:
@@ -89,6 +108,8 @@ def check_structure(manifest: dict, mpath: Path) -> None:
         need(meta, f"files[{rel!r}]", dict, "an object {bytes, sha256}")
         need(meta.get("bytes"), f"files[{rel!r}].bytes", int, "an integer")
         need(meta.get("sha256"), f"files[{rel!r}].sha256", str, "a string")
+        if "sample" in meta:
+            need(meta["sample"], f"files[{rel!r}].sample", str, "a string")
     part = need(manifest["partition"], "partition", dict, "an object {method, params}")
     need(part.get("method"), "partition.method", str, "a string")
     need(manifest["n_references"], "n_references", int, "an integer")
@@ -142,10 +163,111 @@ def checked_file(path: Path, manifest: Mapping[str, Any], rel: str, verify: bool
     return p
 
 
+def sample_offsets(size: int) -> list[int]:
+    """Start of each sampled page of a file of ``size`` bytes (page-aligned, first and last
+    included)."""
+    last = max(0, (size - 1) // PAGE_BYTES)
+    n = min(SAMPLE_PAGES, last + 1)
+    pages = sorted({round(i * last / max(1, n - 1)) for i in range(n)})
+    return [p * PAGE_BYTES for p in pages]
+
+
+def _digest_fd(fd: int, size: int) -> str:
+    h = hashlib.sha256(_SAMPLE_TAG)
+    h.update(str(size).encode())
+    for off in sample_offsets(size):
+        h.update(os.pread(fd, PAGE_BYTES, off))
+    return h.hexdigest()
+
+
+def sample_digest(path: str | os.PathLike[str], size: int | None = None) -> str:
+    """Fingerprint of a large file: sha256 of its size and its sampled pages."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        return _digest_fd(fd, os.fstat(fd).st_size if size is None else size)
+    finally:
+        os.close(fd)
+
+
+def file_entry(root: Path, rel: str) -> dict:
+    """The manifest's ``files`` entry of ``root/rel``: bytes, sha256 and (large files) the
+    sampled-page fingerprint checked at every open."""
+    p = root / rel
+    size = p.stat().st_size
+    entry: dict[str, Any] = {"bytes": size, "sha256": file_sha256(p)}
+    if size > SMALL_FILE_BYTES:
+        entry["sample"] = sample_digest(p, size)
+    return entry
+
+
 def file_table(root: Path, rels: list[str]) -> dict[str, dict]:
-    """The manifest's ``files`` entries (size and sha256) of files under ``root``."""
-    return {r: {"bytes": (root / r).stat().st_size, "sha256": file_sha256(root / r)}
-            for r in rels}
+    """The manifest's ``files`` entries (size, sha256, fingerprint) of files under ``root``."""
+    return {r: file_entry(root, r) for r in rels}
+
+
+def content_matches(path: str | os.PathLike[str], meta: Mapping[str, Any]) -> bool | None:
+    """Whether a file still matches its manifest entry by the cheap check (small: sha256;
+    large: sampled pages); None when the entry has no fingerprint (an older map)."""
+    size = int(meta["bytes"])
+    if size <= SMALL_FILE_BYTES:
+        return file_sha256(path) == meta.get("sha256")
+    if not isinstance(meta.get("sample"), str):
+        return None
+    return sample_digest(path, size) == meta["sample"]
+
+
+def check_content(path: Path, manifest: Mapping[str, Any], rels: list[str]) -> int:
+    """The cheap content check of ``rels`` (module docstring); MapError naming the first file
+    that differs. Returns how many files had no fingerprint (maps written before them).
+
+    Files are handled in batches: open, queue the reads of the sampled pages
+    (``posix_fadvise(WILLNEED)``: a cold disk serves them in parallel), then hash."""
+    files, root = manifest["files"], os.fspath(path)
+    todo = [r for r in rels if isinstance(files[r].get("sample"), str)
+            or int(files[r]["bytes"]) <= SMALL_FILE_BYTES]
+    unchecked = len(rels) - len(todo)
+    for start in range(0, len(todo), 256):
+        batch, fds = todo[start:start + 256], []
+        try:
+            for rel in batch:
+                try:
+                    fds.append(os.open(os.path.join(root, rel), os.O_RDONLY))
+                except OSError as exc:
+                    raise MapError(f"{path}: cannot read {rel} ({exc.strerror})") from None
+                size = int(files[rel]["bytes"])
+                _advise(fds[-1], [0] if size <= SMALL_FILE_BYTES else sample_offsets(size),
+                        min(size, SMALL_FILE_BYTES) if size <= SMALL_FILE_BYTES else PAGE_BYTES)
+            for rel, fd in zip(batch, fds):
+                meta, size = files[rel], int(files[rel]["bytes"])
+                try:
+                    if size <= SMALL_FILE_BYTES:
+                        with os.fdopen(os.dup(fd), "rb") as fh:
+                            ok = hashlib.file_digest(fh, "sha256").hexdigest() == meta["sha256"]
+                    else:
+                        ok = _digest_fd(fd, size) == meta["sample"]
+                except OSError as exc:
+                    raise MapError(f"{path}: cannot read {rel} ({exc.strerror})") from None
+                if not ok:
+                    raise content_error(path, rel)
+        finally:
+            for fd in fds:
+                os.close(fd)
+    return unchecked
+
+
+def _advise(fd: int, offsets: list[int], length: int) -> None:
+    if hasattr(os, "posix_fadvise"):
+        for off in offsets:
+            try:
+                os.posix_fadvise(fd, off, length, os.POSIX_FADV_WILLNEED)
+            except OSError:
+                return
+
+
+def content_error(path: Path, rel: str, when: str = "") -> MapError:
+    return MapError(f"{path}: {rel} does not match the manifest{when} (swapped with another "
+                    "file or rewritten in place); the map is refused: rebuild it or run "
+                    "'vlm-vpr map verify'")
 
 
 def verify_files(path: Path, manifest: Mapping[str, Any],
@@ -184,9 +306,15 @@ def load_state(path: Path, manifest: dict, verify: bool) -> dict[str, np.ndarray
     rel = manifest.get("descriptor_state")
     if not rel:
         return {}
-    p = checked_file(path, manifest, rel, verify)
+    p = checked_file(path, manifest, rel, False)
     try:
-        with np.load(p, allow_pickle=False) as npz:
+        data = p.read_bytes()  # read whole anyway: its sha256 is checked at every open
+    except OSError as exc:
+        raise MapError(f"{path}: cannot read {rel}: {exc.strerror}") from None
+    if hashlib.sha256(data).hexdigest() != manifest["files"][rel].get("sha256"):
+        raise content_error(path, rel)
+    try:
+        with np.load(io.BytesIO(data), allow_pickle=False) as npz:
             return {k: npz[k] for k in npz.files}
     except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as exc:
         raise MapError(f"{path}: cannot read {rel}: {exc}") from exc

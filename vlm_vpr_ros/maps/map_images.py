@@ -72,7 +72,7 @@ def attach_images(map_dir: str | os.PathLike[str], images_dir: str | os.PathLike
     """Move the reference images of a freshly built map (``images_dir/<id>``) into it and list
     them in its manifest (used by ``build-map --bag``)."""
     path = Path(map_dir)
-    with edit_lock(path):
+    with edit_lock(path, "storing the images of a teach map"):
         manifest = json.loads((path / MANIFEST).read_text(encoding="utf-8"))
         ref_ids = ids if ids is not None else ReferenceMap.load(path, verify=False).all_ids()
         tx = Transaction(path, manifest)

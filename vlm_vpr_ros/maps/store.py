@@ -12,17 +12,23 @@ into place, so a folder with a manifest is complete)::
     MAP/submaps/<id>.coords.npy  (n, 2) float64 lat/lon (memory-mapped)
     MAP/submaps/<id>.ids.npy     (n,) fixed-width UTF-8 bytes ``S<w>`` (memory-mapped)
 
-Opening a map reads the manifest and ``stat``s every file (sizes must match); no file is read.
-A submap is opened on first use (sizes checked again before mapping). A file truncated while the
-map is open would make the next page access raise SIGBUS (a crash Python cannot catch), so every
-search first compares the sizes of the files it reads with the manifest (a ``stat`` call each;
-coords and ids of the submaps that hold hits before they are read) and raises
-:class:`MapError` instead. The full sha256 pass is :func:`~vlm_vpr_ros.maps.format.verify_files`
-(``vlm-vpr map verify``, node parameter ``verify_map``).
+Opening a map reads the manifest, ``stat``s every file (sizes must match) and checks every
+file's content fingerprint (:func:`~vlm_vpr_ros.maps.format.check_content`: small files whole,
+large ones by sampled pages), so files swapped between submaps or rewritten with the same size
+are refused. A submap is opened on first use (sizes checked again before mapping). A file
+truncated while the map is open would make the next page access raise SIGBUS (a crash Python
+cannot catch), so every search first ``stat``s the files it reads (the index, pq re-rank
+vectors; coords and ids of the submaps that hold hits, before they are read) and raises
+:class:`MapError` instead; a file whose modification or change time moved since the check is
+checked again, and a submap whose content changed under a running process is refused from then
+on (every query that needs it fails, flagged) until the map is reloaded. The full sha256 pass
+is :func:`~vlm_vpr_ros.maps.format.verify_files` (``vlm-vpr map verify``, node parameter
+``verify_map``).
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import mmap
 import os
@@ -37,7 +43,8 @@ from vlm_vpr_ros.errors import MapError
 from vlm_vpr_ros.files.atomic import (atomic_save_npy, atomic_save_npz, atomic_write_index,
                                       atomic_write_json)
 from vlm_vpr_ros.maps import indexes
-from vlm_vpr_ros.maps.format import (MANIFEST, MAP_FORMAT, METRIC, check_ref_id, checked_file,
+from vlm_vpr_ros.maps.format import (MANIFEST, MAP_FORMAT, METRIC, check_content,
+                                     check_ref_id, checked_file, content_error, content_matches,
                                      file_table, load_state, verify_files)
 from vlm_vpr_ros.maps.submap import submap_radius_km
 
@@ -158,7 +165,11 @@ class LazySubmap:
                                         is not None else None)
         self.files: dict[str, str] = dict(entry["files"])
         self._sizes = {rel: int(files_meta[rel]["bytes"]) for rel in self.files.values()}
+        self._meta = {rel: files_meta[rel] for rel in self.files.values()}
+        #: (dev, ino, mtime_ns, ctime_ns) of each file when its content was last checked
+        self._seen: dict[str, tuple[int, int, int, int]] = {}
         self._inodes: dict[str, tuple[int, int]] = {}
+        self._refused = ""  # why this submap is refused (content changed under us)
         self._stat_paths: list[tuple[str, str, int, str]] | None = None  # role, rel, bytes, path
         self._prefetch_at: dict[str, tuple[str, int, int]] | None = None  # see prefetch()
         self._lock = threading.Lock()
@@ -166,11 +177,22 @@ class LazySubmap:
         self._coords: np.ndarray | None = None  # mapped without opening the index
 
     # -- size guard (prevents SIGBUS on truncated mapped files) --------------------------------
+    def note_checked(self) -> None:
+        """Record the files' identity and times: their content was just checked."""
+        for rel in self._sizes:
+            with contextlib.suppress(OSError):
+                st = os.stat(self.root / rel)
+                self._seen[rel] = (st.st_dev, st.st_ino, st.st_mtime_ns, st.st_ctime_ns)
+
     def check_files(self, roles: tuple[str, ...] | None = None) -> None:
-        """MapError when a file is missing or its size differs from the manifest. For an open
-        submap, a file replaced by another one (new inode, e.g. an atomic map update) is not an
-        error: the mapping keeps the old file alive. ``roles``: only these files (index,
-        vectors, coords, ids: what the caller reads next); all by default."""
+        """MapError when a file is missing, its size differs from the manifest, or it was
+        modified since its content was checked and no longer matches its fingerprint (the
+        submap is then refused until the map is reloaded). For an open submap, a file replaced
+        by another one (new inode, e.g. an atomic map update) is not an error: the mapping keeps
+        the old file alive. ``roles``: only these files (index, vectors, coords, ids: what the
+        caller reads next); all by default."""
+        if self._refused:
+            raise MapError(self._refused)
         if self._stat_paths is None:  # joined once: a pathlib join per file and search cost
             self._stat_paths = [(role, rel, self._sizes[rel], os.fspath(self.root / rel))
                                 for role, rel in self.files.items()]  # 6x the stat itself
@@ -189,6 +211,23 @@ class LazySubmap:
                 raise MapError(f"{self.root}: {rel} has {st.st_size} bytes, manifest says {size} "
                                f"(truncated or modified {when}); reload or rebuild the map"
                                .replace("  ", " ").replace(" )", ")"))
+            now = (st.st_dev, st.st_ino, st.st_mtime_ns, st.st_ctime_ns)
+            if same_file and self._seen.get(rel, now) != now:
+                self._recheck(rel, now)
+
+    def _recheck(self, rel: str, now: tuple[int, int, int, int]) -> None:
+        """A file was written since its content was checked: check it again."""
+        try:
+            ok = content_matches(self.root / rel, self._meta[rel])
+        except OSError:
+            ok = False
+        if ok is False:
+            when = " since the map was opened" if self._open is not None else ""
+            self._refused = str(content_error(self.root, rel, when)).replace(
+                "the map is refused", f"submap {self.id} is refused until the map is reloaded")
+            log.error("%s", self._refused)
+            raise MapError(self._refused)
+        self._seen[rel] = now  # same content (e.g. touched), or no fingerprint to compare
 
     def _do_open(self):
         import faiss
@@ -376,14 +415,25 @@ def validate_entries(path: Path, manifest: dict) -> None:
 def open_submaps(path: Path, manifest: dict, verify: bool
                  ) -> tuple[list["LazySubmap"], dict[str, np.ndarray]]:
     """The lazy submaps and the descriptor state of a v2 folder (for ``ReferenceMap.load``):
-    the manifest's structure and every file's size are checked; ``verify`` adds the sha256
-    pass."""
+    the manifest's structure, every file's size and its content fingerprint are checked;
+    ``verify`` checks the sha256 of every byte instead."""
     validate_entries(path, manifest)
-    if verify:
-        verify_files(path, manifest)
-    state = load_state(path, manifest, False)
     dim = int(manifest["descriptor"]["dim"])
     subs = [LazySubmap(path, e, dim, manifest["files"]) for e in manifest["submaps"]]
+    for s in subs:  # before the check: a change made during it is seen at the first search
+        s.note_checked()
+    rels = [r for e in manifest["submaps"] for r in e["files"].values()]
+    rels += [r for r in (manifest.get("descriptor_state"), "calibration.json")
+             if r and r in manifest["files"]]
+    if verify:
+        verify_files(path, manifest)
+    else:
+        unchecked = check_content(path, manifest, rels)
+        if unchecked:
+            log.info("%s: %d of %d files were written before content fingerprints and are "
+                     "checked by size only ('vlm-vpr map verify' checks them whole)", path,
+                     unchecked, len(rels))
+    state = load_state(path, manifest, False)
     total = sum(s.count for s in subs)
     if total != manifest["n_references"]:
         raise MapError(f"{path}: submaps hold {total} references, manifest says "

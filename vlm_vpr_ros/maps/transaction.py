@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
-import fcntl
+import os
 import time
 from pathlib import Path
 from typing import Any, Iterator, Mapping
@@ -14,29 +14,45 @@ from typing import Any, Iterator, Mapping
 import numpy as np
 
 from vlm_vpr_ros import __version__
-from vlm_vpr_ros.errors import MapError
-from vlm_vpr_ros.files.atomic import (atomic_save_npy, atomic_write_index, atomic_write_json,
-                                      file_sha256)
+from vlm_vpr_ros.errors import MapError, OutputError
+from vlm_vpr_ros.files.atomic import atomic_save_npy, atomic_write_index, atomic_write_json
+from vlm_vpr_ros.files.lock import WriterLock, lock_path
 from vlm_vpr_ros.maps import store
-from vlm_vpr_ros.maps.format import MANIFEST
+from vlm_vpr_ros.maps.format import MANIFEST, file_entry
 from vlm_vpr_ros.maps.submap import Submap, submap_radius_km
 
 
 @contextlib.contextmanager
-def edit_lock(map_dir: Path) -> Iterator[None]:
-    """Exclusive lock on a map folder for one edit (fails at once if another edit runs)."""
+def edit_lock(map_dir: Path, what: str = "a map edit") -> Iterator[None]:
+    """Exclusive writer lock of a map folder for one edit: the lock every writer of the map
+    takes (:class:`~vlm_vpr_ros.files.lock.WriterLock`, ``PARENT/.MAP.lock``; builds with and
+    without ``--overwrite`` too). Waits a little, then MapError when another writer holds it."""
     if not (map_dir / MANIFEST).is_file():
         raise MapError(f"{map_dir} is not a map (no {MANIFEST})")
-    fh = open(map_dir / ".edit.lock", "a+")
+    # the entry (what a rebuild swaps) and, when it is a symbolic link, the folder it names
+    # (what another edit through the real path writes into)
+    targets = [Path(map_dir)]
+    real = Path(os.path.realpath(map_dir))
+    if lock_path(real) != lock_path(map_dir):
+        targets.append(real)
+    held: list[WriterLock] = []
     try:
-        try:
-            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            raise MapError(f"{map_dir} is being edited by another process; try again when it "
-                           "has finished") from None
+        for t in targets:
+            held.append(WriterLock(t, what, inside_ok=True).acquire())
+    except OutputError as exc:
+        for lock in held:
+            lock.release()
+        raise MapError(str(exc)) from None
+    try:
         yield
     finally:
-        fh.close()
+        for lock in reversed(held):
+            lock.release()
+
+
+def _folder_id(path: Path) -> tuple[int, int]:
+    st = os.stat(path)
+    return st.st_dev, st.st_ino
 
 
 class Transaction:
@@ -47,15 +63,29 @@ class Transaction:
         self.old = manifest
         self.new = copy.deepcopy(manifest)
         self.written: list[str] = []
+        #: the folder this edit opened: every write checks that ``path`` still names it
+        self.folder = _folder_id(path)
+
+    def check_folder(self) -> None:
+        """MapError when ``path`` no longer names the folder this edit opened (it was moved or
+        swapped by a process that did not take the writer lock): nothing is written through a
+        path that now names another map."""
+        try:
+            same = _folder_id(self.path) == self.folder
+        except OSError:
+            same = False
+        if not same:
+            raise MapError(f"{self.path} was moved or replaced while this edit ran; the edit "
+                           "is abandoned (nothing was committed): run it again")
 
     def record(self, rel: str) -> None:
         self.written.append(rel)
-        p = self.path / rel
-        self.new["files"][rel] = {"bytes": p.stat().st_size, "sha256": file_sha256(p)}
+        self.new["files"][rel] = file_entry(self.path, rel)
 
     def write_submap(self, sub: Submap, gen: int) -> dict:
         """Write a submap under generation-stamped names in the map's own format version;
         returns its manifest entry."""
+        self.check_folder()
         entry = {"id": sub.id, "count": sub.count,
                  "centroid": [round(float(c), 7) for c in sub.centroid]}
         if int(self.old.get("version", 1)) >= 2:  # format v2 (vlm_vpr_ros.maps.store)
@@ -83,6 +113,7 @@ class Transaction:
         are kept for one more generation (``retired``): a process that opened the previous
         generation lazily (format v2) can still open its submaps until it reloads; the files
         retired by the edit before are deleted now."""
+        self.check_folder()
         listed = self.new["files"]
         for rel in list(listed):
             if not (self.path / rel).is_file():
@@ -96,6 +127,10 @@ class Transaction:
                 (self.path / rel).unlink()
 
     def rollback(self) -> None:
+        try:
+            self.check_folder()
+        except MapError:
+            return  # the folder at ``path`` is not ours any more: delete nothing there
         for rel in self.written:
             if rel not in self.old["files"]:
                 with contextlib.suppress(FileNotFoundError):

@@ -1,22 +1,37 @@
 """A small, dependable client of OpenAI-compatible ``/chat/completions`` endpoints (OpenAI,
-Gemini's OpenAI-compatible endpoint, Ollama, vLLM, llama.cpp server), stdlib only.
+Azure OpenAI deployments, Gemini's OpenAI-compatible endpoint, Ollama, vLLM, llama.cpp server),
+stdlib only.
 
-:meth:`ChatClient.call` is blocking and is meant to run in a worker thread; it never raises on
-network or server trouble and returns a :class:`ChatReply` instead. It implements
+Why hand-written rather than the ``openai`` package: a robot needs guarantees that client
+does not give. :meth:`ChatClient.call` runs in a worker thread and must be stoppable from the
+node's thread at any moment and bounded by a hard deadline even against a server that trickles
+one byte at a time; that needs the socket itself (a watchdog and :meth:`CallHandle.abort` shut
+it down), which a high-level SDK hides behind its own retry loop and timeouts. The request
+spacing is global to all threads, failures are values (never exceptions), and no secret may
+reach a log, a ``repr`` or an error text; the whole path is ~600 lines that can be audited.
+
+:meth:`ChatClient.call` never raises on network or server trouble and returns a
+:class:`ChatReply` instead. It implements
 
 * a hard per-attempt timeout (a watchdog closes the socket, so even a server that trickles
   bytes cannot hold a caller longer than ``timeout_s``),
 * bounded retries with exponential back-off and jitter on timeouts, connection errors, 408 and
   5xx; ``429`` (and ``503``) honour ``Retry-After`` (seconds or an HTTP date),
 * a minimum interval between the starts of any two requests (shared by all threads),
-* cancellation: :meth:`CallHandle.abort` wakes a sleeping retry and shuts the socket down.
+* cancellation: :meth:`CallHandle.abort` wakes a sleeping retry and shuts the socket down,
+* kept-alive connections, reused across requests (:mod:`~vlm_vpr_ros.priors.transport`): a
+  robot asking once a second pays the TCP and TLS handshakes once, not every time; a kept
+  connection the server closed meanwhile is replaced without costing an attempt,
+* the base URL's query string (Azure ``?api-version=...``), the ``api-key`` header of Azure
+  endpoints, and http proxies with credentials (``Proxy-Authorization`` on the CONNECT).
 
-The API key goes into the ``Authorization`` header only: it is never logged, never part of
-``repr`` and never returned.
+The API key goes into its header only: it is never logged, never part of ``repr`` and never
+returned. Bodies of error answers are logged only at debug level, redacted.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import email.utils
 import http.client
 import json
@@ -26,18 +41,17 @@ import socket
 import ssl
 import threading
 import time
-import urllib.parse
-import urllib.request
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from vlm_vpr_ros.errors import ConfigError
-from vlm_vpr_ros.redact import redact, register_secret
+from vlm_vpr_ros.priors.transport import (ConnectionPool, Endpoint, Proxy, make_connection,
+                                          request_target)
+from vlm_vpr_ros.redact import redact
 
 log = logging.getLogger(__name__)
 
 MAX_RESPONSE_BYTES = 8 * 1024 * 1024
-_LOOPBACK = ("127.", "localhost", "::1", "[::1]")
 
 
 @dataclass(frozen=True)
@@ -49,6 +63,10 @@ class ChatReply:
     status: int | None = None
     attempts: int = 0
     refusal: str | None = None  # the API's structured refusal text, when it sends one
+    finish_reason: str | None = None  # "stop", "length" (cut at the token limit), ...
+    #: the body of an HTTP error answer (read by the caller to explain a 400; never logged
+    #: unredacted, never printed)
+    error_body: bytes | None = field(default=None, repr=False)
 
     @property
     def ok(self) -> bool:
@@ -111,25 +129,22 @@ class ChatClient:
     def __init__(self, base_url: str, api_key: str | None = None, timeout_s: float = 60.0,
                  max_retries: int = 3, backoff_s: float = 1.0, max_backoff_s: float = 30.0,
                  max_retry_after_s: float = 120.0, min_interval_s: float = 0.0,
-                 rng: random.Random | None = None) -> None:
-        try:
-            url = urllib.parse.urlsplit(str(base_url).strip())
-            url.port  # noqa: B018 - raises ValueError on a bad port
-        except ValueError:
-            url = None
-        if url is None or url.scheme not in ("http", "https") or not url.hostname:
-            raise ConfigError(f"base_url must be an http(s) URL, got {redact(base_url)!r}")
-        if timeout_s <= 0 or max_retries < 0 or backoff_s < 0 or min_interval_s < 0:
+                 rng: random.Random | None = None, auth_header: str = "auto",
+                 ca_file: str | None = None) -> None:
+        self._url = Endpoint.parse(base_url, auth_header)
+        if not (timeout_s > 0 and max_retries >= 0 and backoff_s >= 0 and min_interval_s >= 0):
             raise ConfigError("timeout_s must be > 0; max_retries, backoff_s and "
                               "min_interval_s must be >= 0")
-        register_secret(url.password)  # never log a key given as URL userinfo
-        register_secret(url.username)
-        self._url = url
-        self._path = f"{url.path.rstrip('/')}/chat/completions"
-        host = url.hostname or ""
-        host = f"[{host}]" if ":" in host else host
-        #: the URL as logged: no userinfo
-        self.endpoint = f"{url.scheme}://{host}{f':{url.port}' if url.port else ''}{self._path}"
+        self._proxy = Proxy.for_endpoint(self._url)
+        #: the URL as logged: no userinfo, secret query values masked
+        self.endpoint = self._url.display
+        self._context: ssl.SSLContext | None = None
+        if self._url.scheme == "https":
+            try:
+                self._context = ssl.create_default_context(cafile=ca_file or None)
+            except (OSError, ssl.SSLError) as exc:
+                raise ConfigError(f"ca_file {ca_file}: cannot load CA certificates: "
+                                  f"{getattr(exc, 'strerror', None) or exc}") from None
         self.__api_key = api_key or None
         self.timeout_s = float(timeout_s)
         self.max_retries = int(max_retries)
@@ -140,9 +155,17 @@ class ChatClient:
         self._rng = rng or random.Random()
         self._slot_lock = threading.Lock()
         self._next_slot = 0.0
+        self.pool = ConnectionPool()
+        if self._proxy is not None:
+            log.info("%s: through proxy %s%s", self.endpoint, self._proxy.display,
+                     " (with credentials)" if self._proxy.authorization else "")
 
     def __repr__(self) -> str:
         return f"ChatClient({self.endpoint!r}, key={'set' if self.__api_key else 'none'})"
+
+    def close(self) -> None:
+        """Close the kept-alive connections (a later call opens new ones)."""
+        self.pool.close()
 
     # --- public ----------------------------------------------------------------------------
     def call(self, body: dict[str, Any], handle: CallHandle | None = None) -> ChatReply:
@@ -154,8 +177,7 @@ class ChatClient:
             if not self._wait(self._reserve_slot(), handle):
                 return ChatReply(None, "cancelled", attempts=attempt)
             reply, retry_after = self._attempt(data, handle)
-            reply = ChatReply(reply.content, reply.reason, reply.status, attempt + 1,
-                              reply.refusal)
+            reply = dataclasses.replace(reply, attempts=attempt + 1)
             if reply.ok or handle.aborted.is_set() or not self._retryable(reply):
                 return reply
             if attempt == self.max_retries:
@@ -201,80 +223,115 @@ class ChatClient:
         return not handle.aborted.is_set()
 
     # --- transport -------------------------------------------------------------------------
-    def _connection(self) -> tuple[http.client.HTTPConnection, str]:
-        url = self._url
-        host, port = url.hostname or "", url.port
-        path = self._path
-        proxy = None
-        if not host.startswith(_LOOPBACK) and not urllib.request.proxy_bypass(host):
-            proxy = urllib.request.getproxies().get(url.scheme)
-        if url.scheme == "https":
-            ctx = ssl.create_default_context()
-            if proxy:
-                p = urllib.parse.urlsplit(proxy)
-                conn = http.client.HTTPSConnection(p.hostname or "", p.port or 3128,
-                                                   timeout=self.timeout_s, context=ctx)
-                conn.set_tunnel(host, port or 443)
-            else:
-                conn = http.client.HTTPSConnection(host, port, timeout=self.timeout_s,
-                                                   context=ctx)
-            return conn, path
-        if proxy:
-            p = urllib.parse.urlsplit(proxy)
-            return (http.client.HTTPConnection(p.hostname or "", p.port or 3128,
-                                               timeout=self.timeout_s), self.endpoint)
-        return http.client.HTTPConnection(host, port, timeout=self.timeout_s), path
+    def _open(self, fresh: bool = False) -> tuple[http.client.HTTPConnection, bool]:
+        """A kept-alive idle connection (unless ``fresh``), or a new one; and whether it was
+        kept."""
+        idle = None if fresh else self.pool.take()
+        if idle is not None:
+            return idle, True
+        self.pool.opened_one()
+        return make_connection(self._url, self._proxy, self.timeout_s, self._context), False
 
     def _attempt(self, data: bytes, handle: CallHandle) -> tuple[ChatReply, float | None]:
-        conn, path = self._connection()
+        target, proxy_headers = request_target(self._url, self._proxy)
         headers = {"Content-Type": "application/json", "Accept": "application/json",
-                   "User-Agent": "vlm_vpr_ros"}
-        if self.__api_key:
-            headers["Authorization"] = f"Bearer {self.__api_key}"
+                   "User-Agent": "vlm_vpr_ros", **self._url.auth(self.__api_key),
+                   **proxy_headers}
         fired = threading.Event()
+        current: list[http.client.HTTPConnection] = []
 
         def _expire() -> None:
             fired.set()
-            _shutdown(conn)
+            for c in current:
+                _shutdown(c)
 
-        watchdog = threading.Timer(self.timeout_s, _expire)
+        watchdog = threading.Timer(self.timeout_s, _expire)  # one deadline for the attempt
         watchdog.daemon = True
-        handle._attach(conn)
         watchdog.start()
+        conn: http.client.HTTPConnection | None = None
+        reusable = False
         try:
-            conn.connect()
-            if handle.aborted.is_set():  # aborted before the socket existed
-                return ChatReply(None, "cancelled"), None
-            conn.request("POST", path, body=data, headers=headers)
-            resp = conn.getresponse()
+            for again in (False, True):  # again: only after a kept connection proved stale
+                conn, reused = self._open(fresh=again)
+                current[:] = [conn]
+                handle._attach(conn)
+                if fired.is_set():
+                    raise TimeoutError("deadline passed")
+                try:
+                    if conn.sock is None:
+                        conn.connect()
+                    if handle.aborted.is_set():  # aborted before the socket existed
+                        return ChatReply(None, "cancelled"), None
+                    conn.request("POST", target, body=data, headers=headers)
+                    resp = conn.getresponse()
+                except (http.client.RemoteDisconnected, BrokenPipeError,
+                        ConnectionResetError) as exc:
+                    if not reused or fired.is_set() or handle.aborted.is_set():
+                        raise
+                    log.debug("%s: kept-alive connection was closed (%s): reconnecting",
+                              self.endpoint, type(exc).__name__)
+                    conn.close()
+                    continue
+                break
             status = resp.status
             retry_after = parse_retry_after(resp.getheader("Retry-After"))
             payload = resp.read(MAX_RESPONSE_BYTES + 1)
-        except ssl.SSLCertVerificationError as exc:
-            log.error("%s: TLS certificate problem: %s", self.endpoint, exc)
-            return ChatReply(None, "tls_error"), None
+            reusable = resp.isclosed() and not resp.will_close
         except (OSError, http.client.HTTPException) as exc:
-            if handle.aborted.is_set():
-                return ChatReply(None, "cancelled"), None
-            if fired.is_set() or isinstance(exc, (TimeoutError, socket.timeout)):
-                return ChatReply(None, "timeout"), None
-            log.debug("%s: %s: %s", self.endpoint, type(exc).__name__, exc)
-            return ChatReply(None, "connection_error"), None
+            return self._failure(exc, handle, fired), None
         finally:
             watchdog.cancel()
             handle._attach(None)
-            conn.close()
+            if conn is not None:
+                if reusable and not fired.is_set() and not handle.aborted.is_set():
+                    self.pool.give_back(conn)
+                else:
+                    conn.close()
         if handle.aborted.is_set():  # the socket was shut down under a read: data is partial
             return ChatReply(None, "cancelled"), None
         if fired.is_set():
             return ChatReply(None, "timeout"), None
         if status != 200:
             if status in (401, 403):  # bodies may echo a masked key: do not log them
-                log.error("%s: HTTP %d (check the API key / permissions)", self.endpoint, status)
+                log.error("%s: HTTP %d (check the API key / permissions; sent in the %s "
+                          "header)", self.endpoint, status, self._url.auth_header)
+            elif status == 407:
+                log.error("%s: HTTP 407 from the proxy (check the credentials in the proxy "
+                          "URL)", self.endpoint)
             else:
-                log.debug("%s: HTTP %d: %s", self.endpoint, status, payload[:300])
-            return ChatReply(None, f"http_{status}", status), retry_after
+                log.debug("%s: HTTP %d: %s", self.endpoint, status, redact(payload[:300]))
+            return ChatReply(None, f"http_{status}", status, error_body=payload), retry_after
         return _read_completion(payload), None
+
+    def _failure(self, exc: BaseException, handle: CallHandle, fired: threading.Event
+                 ) -> ChatReply:
+        """The reason of a failed attempt (and one log line where the user must act)."""
+        if handle.aborted.is_set():
+            return ChatReply(None, "cancelled")
+        if fired.is_set() or isinstance(exc, (TimeoutError, socket.timeout)):
+            return ChatReply(None, "timeout")
+        if isinstance(exc, ssl.SSLCertVerificationError):
+            log.error("%s: TLS certificate problem: %s (a private CA: prior option ca_file)",
+                      self.endpoint, exc.verify_message or exc.reason)
+            return ChatReply(None, "tls_error")
+        if isinstance(exc, ssl.SSLError) and not isinstance(
+                exc, (ssl.SSLEOFError, ssl.SSLZeroReturnError)):
+            plain = exc.reason in ("WRONG_VERSION_NUMBER", "RECORD_LAYER_FAILURE",
+                                   "PACKET_LENGTH_TOO_LONG", "HTTP_REQUEST")
+            log.error("%s: TLS handshake failed (%s)%s", self.endpoint, exc.reason or exc,
+                      ": the server speaks plain http here? use an http:// base_url"
+                      if plain else "")
+            return ChatReply(None, "tls_error")
+        text = str(exc)
+        if self._proxy is not None and text.startswith("Tunnel connection failed"):
+            if " 407 " in f"{text} ":
+                log.error("%s: the proxy %s refused the credentials (HTTP 407): check the "
+                          "user and password in https_proxy", self.endpoint,
+                          self._proxy.display)
+                return ChatReply(None, "proxy_auth", 407)
+            log.warning("%s: proxy %s: %s", self.endpoint, self._proxy.display, redact(text))
+        log.debug("%s: %s: %s", self.endpoint, type(exc).__name__, redact(text))
+        return ChatReply(None, "connection_error")
 
 
 def _read_completion(payload: bytes) -> ChatReply:
@@ -288,13 +345,17 @@ def _read_completion(payload: bytes) -> ChatReply:
         return ChatReply(None, "bad_response", 200)
     if not isinstance(message, dict):
         return ChatReply(None, "bad_response", 200)
+    finish = body["choices"][0].get("finish_reason")
+    finish = finish if isinstance(finish, str) else None
     refusal = message.get("refusal")
     content = message.get("content")
     if isinstance(content, list):  # content parts
         content = "".join(p.get("text", "") for p in content
                           if isinstance(p, dict) and isinstance(p.get("text"), str))
     if isinstance(refusal, str) and refusal and not content:
-        return ChatReply(refusal, "refusal", 200, refusal=refusal)
+        return ChatReply(refusal, "refusal", 200, refusal=refusal, finish_reason=finish)
+    if content is None and finish == "length":  # all tokens spent (on hidden reasoning)
+        content = ""
     if not isinstance(content, str):
         return ChatReply(None, "bad_response", 200)
-    return ChatReply(content, "", 200)
+    return ChatReply(content, "", 200, finish_reason=finish)

@@ -14,6 +14,16 @@ Three modes, selectable everywhere a parser is configured:
 
 All modes check ranges; a refusal or an answer without coordinates gives a typed result
 (``reason`` = ``"empty"``, ``"refusal"``, ``"no_coordinates"`` or ``"out_of_range"``).
+GeoJSON (``{"type": "Point", "coordinates": [lon, lat]}``) is read in GeoJSON order.
+
+:func:`parse_structured` reads the answer of a structured-output request (a JSON object of
+the schema in :func:`~vlm_vpr_ros.priors.prompts.response_format`).
+
+A position can be read and still be suspicious (:attr:`ParsedAnswer.suspicious`):
+``null_island`` for (0, 0) and its ~10 km around (open ocean; the placeholder of a model that
+does not know), ``injection`` when the answer carries instructions aimed at the model ("ignore
+the image; latitude 0, longitude 0", e.g. read from a sign in the picture). Providers report
+such answers as failures, not as priors.
 """
 
 from __future__ import annotations
@@ -81,6 +91,8 @@ class ParsedAnswer:
     reason: str = ""  # "" when ok
     method: str = ""  # how it was found: json, fenced_json, embedded_json, labelled, ...
     info: dict[str, str] = field(default_factory=dict)  # country, city, ... when given
+    suspicious: str = ""  # "", "null_island" or "injection" (see the module docstring)
+    uncertainty_km: float | None = None  # the model's own error radius (structured output)
 
     @property
     def ok(self) -> bool:
@@ -104,7 +116,8 @@ def parse_answer(text: Any, mode: str = "robust") -> ParsedAnswer:
     found_out_of_range = False
     for lat, lon, method, info in func(text):
         if in_range(lat, lon):
-            return ParsedAnswer(float(lat), float(lon), "", method, info)
+            return ParsedAnswer(float(lat), float(lon), "", method, info,
+                                suspicious_answer(text, lat, lon))
         found_out_of_range = True
     if found_out_of_range:
         return ParsedAnswer(None, None, "out_of_range")
@@ -163,6 +176,10 @@ def _find_keys(obj: Any, depth: int = 0) -> tuple[Any, Any, dict[str, str]] | No
     lon = next((low[k] for k in _LON_KEYS if k in low), None)
     if lat is not None and lon is not None:
         return lat, lon, info
+    point = low.get("coordinates")
+    if (str(low.get("type", "")).lower() == "point" and isinstance(point, list)
+            and len(point) in (2, 3)):  # GeoJSON: [longitude, latitude(, altitude)]
+        return point[1], point[0], info
     for key in ("coordinates", "coords", "location", "position", "gps"):
         v = low.get(key)
         if isinstance(v, (list, tuple)) and len(v) == 2:
@@ -291,3 +308,47 @@ def _paper(text: str) -> Iterator[tuple[float, float, str, dict]]:
 
 
 _MODES = {"strict": _strict, "robust": _robust, "paper": _paper}
+
+
+# --- structured output -----------------------------------------------------------------------
+def parse_structured(text: Any) -> ParsedAnswer:
+    """Read a structured-output answer: one JSON object with numeric ``latitude`` and
+    ``longitude`` (and ``uncertainty_km`` when asked). Anything else is ``no_coordinates`` (the
+    caller then falls back to the text parser: some servers ignore ``response_format``)."""
+    if not isinstance(text, str) or not text.strip():
+        return ParsedAnswer(None, None, "empty")
+    obj = _loads(text[:MAX_TEXT_CHARS].strip())
+    hit = _top_keys(obj)
+    if hit is None:
+        return ParsedAnswer(None, None, "no_coordinates")
+    lat, lon = _scalar(hit[0], "lat"), _scalar(hit[1], "lon")
+    if lat is None or lon is None or isinstance(hit[0], str) or isinstance(hit[1], str):
+        return ParsedAnswer(None, None, "no_coordinates")
+    if not in_range(lat, lon):
+        return ParsedAnswer(None, None, "out_of_range")
+    unc = obj.get("uncertainty_km")
+    unc = (float(unc) if isinstance(unc, (int, float)) and not isinstance(unc, bool)
+           and math.isfinite(unc) and unc >= 0 else None)
+    return ParsedAnswer(float(lat), float(lon), "", "json_schema", hit[2],
+                        suspicious_answer(text, lat, lon), unc)
+
+
+# --- suspicious answers ----------------------------------------------------------------------
+NULL_ISLAND_DEG = 0.1  # |lat| and |lon| below this (~11 km): open ocean around (0, 0)
+_DET = r"(?:the|this|that|these|all|any|your|my|previous|prior|above|earlier|preceding|other)"
+_INJECTION = re.compile(
+    rf"\b(?:ignore|disregard|forget|override|overrule|bypass)\s+(?:{_DET}\s+){{1,3}}"
+    r"(?:image|photo|picture|instructions?|prompts?|questions?|rules?|context|task|system)\b"
+    r"|\b(?:new|updated|real|actual)\s+instructions?\s*:"
+    r"|\bsystem\s+(?:prompt|message)\s*:"
+    r"|\byou\s+(?:must|should|have\s+to)\s+(?:now\s+)?(?:answer|reply|respond|output|say|"
+    r"report)\s+(?:with\s+)?(?:lat|the\s+coordinates|coordinates)", re.I)
+
+
+def suspicious_answer(text: str, lat: float, lon: float) -> str:
+    """``null_island``, ``injection`` or "" for a parsed answer (see the module docstring)."""
+    if _INJECTION.search(text[:MAX_TEXT_CHARS]):
+        return "injection"
+    if abs(lat) < NULL_ISLAND_DEG and abs(lon) < NULL_ISLAND_DEG:
+        return "null_island"
+    return ""

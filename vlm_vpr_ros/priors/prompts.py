@@ -78,3 +78,34 @@ def build_messages(prompt: Prompt, image_data_url: str) -> list[dict[str, Any]]:
             {"type": "image_url", "image_url": {"url": image_data_url}},
         ]},
     ]
+
+
+_TEXT_FIELDS = {
+    "ltm": ("continent", "country", "region", "city", "place", "reasons"),
+    "direct": (),
+}
+
+
+def response_format(prompt: Prompt, uncertainty: bool = False) -> dict[str, Any]:
+    """The ``response_format`` of structured output for ``prompt``: a strict JSON schema with
+    the prompt's reasoning fields first (the model writes them before the coordinates, as the
+    prompt asks), then ``latitude`` and ``longitude`` in decimal degrees, and with
+    ``uncertainty`` the model's own error radius ``uncertainty_km``."""
+    props: dict[str, Any] = {k: {"type": "string"} for k in _TEXT_FIELDS.get(prompt.name, ())}
+    # the strictest common subset of the providers' schema modes: every field required, no
+    # numeric constraints (ranges are in the descriptions; the parser checks them)
+    props["latitude"] = {"type": "number",
+                         "description": "latitude of the photo in decimal degrees, -90 to 90"}
+    props["longitude"] = {"type": "number", "description": "longitude of the photo in decimal "
+                                                           "degrees, -180 to 180"}
+    if uncertainty:
+        props["uncertainty_km"] = {
+            "type": "number",
+            "description": "your own estimate of how far off the coordinates may be: the "
+                           "radius in km holding the true position with about 68 % "
+                           "probability (>= 0)"}
+    name = f"geolocation_{prompt.name}{'_u' if uncertainty else ''}"
+    return {"type": "json_schema", "json_schema": {
+        "name": name, "strict": True,
+        "schema": {"type": "object", "properties": props, "required": list(props),
+                   "additionalProperties": False}}}

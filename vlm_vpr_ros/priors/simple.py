@@ -49,14 +49,13 @@ class FixedPrior(PriorProvider):
 def read_prior_csv(path: str | os.PathLike[str]) -> dict[str, tuple[float, float]]:
     """Read a ``file, lat, lon`` CSV into {file: (lat, lon)}; blank/invalid rows are skipped
     (counted in a warning); a file repeated with other coordinates is a DataError."""
-    from vlm_vpr_ros.files.csvio import read_rows, unique_rows
+    from vlm_vpr_ros.files.csvio import read_rows, strict_float, unique_rows
 
     items = []
     bad = 0
     for n, row in read_rows(path, "priors CSV", ("file", "lat", "lon"))[1]:
-        try:
-            lat, lon = float(row["lat"]), float(row["lon"])
-        except (TypeError, ValueError):
+        lat, lon = strict_float(row["lat"]), strict_float(row["lon"])  # no "3_9", no "nan"
+        if lat is None or lon is None:
             bad += 1
             continue
         if valid_latlon(lat, lon):

@@ -2,16 +2,23 @@
 ``answers`` (recorded raw answers of real VLMs, parsed offline with the same parser).
 
 Both return failures as :class:`PriorResult` values with a ``reason`` — ``timeout``,
-``http_429``, ``http_500``, ``connection_error``, ``bad_response``, ``refusal``,
-``no_coordinates``, ``out_of_range``, ``no_image``, ``bad_image``, ``cancelled`` — never as
-exceptions. ``openai``'s :meth:`~OpenAIPrior.request` returns a future at once; the work runs in
-a bounded thread pool (``max_concurrency``).
+``http_429``, ``http_500``, ``connection_error``, ``tls_error``, ``proxy_auth``,
+``bad_response``, ``refusal``, ``truncated``, ``no_coordinates``, ``out_of_range``,
+``suspicious_null_island``, ``suspicious_injection``, ``no_image``, ``bad_image``,
+``cancelled`` — never as exceptions. ``openai``'s :meth:`~OpenAIPrior.request` returns a future
+at once; the work runs in a bounded thread pool (``max_concurrency``).
+
+Every answer text passes the redaction point before it is parsed, cached or returned (an
+endpoint may echo the request headers). ``extra["parse_path"]`` says how the position was
+read: ``structured`` (structured output), ``text`` (the text parser) or ``text_fallback``
+(structured output was asked for but the endpoint refused or ignored it).
 """
 
 from __future__ import annotations
 
 import base64
 import concurrent.futures as cf
+import dataclasses
 import logging
 import os
 import threading
@@ -23,15 +30,17 @@ import cv2
 import numpy as np
 
 from vlm_vpr_ros.config import choose
-from vlm_vpr_ros.errors import ConfigError, DataError, ImageDecodeError, PriorError
+from vlm_vpr_ros.errors import ConfigError, DataError, ImageDecodeError
 from vlm_vpr_ros.files.images import check_rgb, decode_image_bytes, encode_jpeg
 from vlm_vpr_ros.priors import register_prior_provider
 from vlm_vpr_ros.priors.base import Prior, PriorProvider, PriorQuery, PriorResult
 from vlm_vpr_ros.priors.cache import AnswerCache, cache_key, image_digest
-from vlm_vpr_ros.priors.openai_client import CallHandle, ChatClient
-from vlm_vpr_ros.priors.parsing import PARSER_MODES, parse_answer
-from vlm_vpr_ros.priors.prompts import build_messages, get_prompt
-from vlm_vpr_ros.redact import ENV_NAME, looks_like_secret, register_secret
+from vlm_vpr_ros.priors.keys import read_api_key
+from vlm_vpr_ros.priors.openai_client import CallHandle, ChatClient, ChatReply
+from vlm_vpr_ros.priors.parsing import PARSER_MODES, parse_answer, parse_structured
+from vlm_vpr_ros.priors.prompts import build_messages, get_prompt, response_format
+from vlm_vpr_ros.priors.request import error_message, rejection, request_options
+from vlm_vpr_ros.redact import redact
 
 log = logging.getLogger(__name__)
 
@@ -39,50 +48,30 @@ __all__ = ["AnswersPrior", "OpenAIPrior", "read_answers_csv", "result_from_text"
 
 
 def result_from_text(raw: str | None, source: str, parser: str = "robust",
-                     latency_s: float = 0.0, extra: dict[str, Any] | None = None
-                     ) -> PriorResult:
-    """Parse a raw answer into a PriorResult (ok, or a failure with the parser's reason)."""
-    parsed = parse_answer(raw, parser)
-    extra = {**(extra or {}), "parser": parser}
-    if parsed.ok:
-        extra.update(parse_method=parsed.method, **parsed.info)
-        assert parsed.lat is not None and parsed.lon is not None
-        return PriorResult(Prior(parsed.lat, parsed.lon, source), source, "", latency_s, raw,
+                     latency_s: float = 0.0, extra: dict[str, Any] | None = None,
+                     parse_path: str = "text") -> PriorResult:
+    """Parse a raw answer into a PriorResult: ok, a failure with the parser's reason, or
+    ``suspicious_<why>`` for a position that must not be used as a prior. ``parse_path``
+    ``structured`` reads a structured-output answer, falling back to the text parser."""
+    raw = None if raw is None else redact(raw)
+    parsed = parse_structured(raw) if parse_path == "structured" else None
+    if parsed is not None and parsed.reason == "no_coordinates":  # the schema was ignored
+        parsed, parse_path = None, "text_fallback"
+    if parsed is None:
+        parsed = parse_answer(raw, parser)
+    extra = {**(extra or {}), "parser": parser, "parse_path": parse_path}
+    if not parsed.ok:
+        return PriorResult(None, source, parsed.reason, latency_s, raw, extra)
+    assert parsed.lat is not None and parsed.lon is not None
+    extra.update(parse_method=parsed.method, **parsed.info)
+    if parsed.uncertainty_km is not None:
+        extra["model_uncertainty_km"] = parsed.uncertainty_km
+    if parsed.suspicious:  # read, but not a prior: flagged with the position for audit
+        extra.update(suspicious=parsed.suspicious, answer_lat=parsed.lat,
+                     answer_lon=parsed.lon)
+        return PriorResult(None, source, f"suspicious_{parsed.suspicious}", latency_s, raw,
                            extra)
-    return PriorResult(None, source, parsed.reason, latency_s, raw, extra)
-
-
-def _read_api_key(env: str | None, path: str | None) -> str | None:
-    """The API key from ``api_key_file`` or ``$api_key_env``; registered for redaction."""
-    if path:
-        try:
-            key = Path(path).expanduser().read_text(encoding="utf-8").strip()
-        except OSError as exc:
-            raise PriorError(f"cannot read api_key_file {path}: {exc.strerror}") from None
-        if not key:
-            raise PriorError(f"api_key_file {path} is empty")
-        register_secret(key)
-        return _check_key(key, f"api_key_file {path}")
-    if env and (looks_like_secret(str(env)) or not ENV_NAME.match(str(env))):
-        register_secret(str(env))
-        raise ConfigError("api_key_env must be the NAME of an environment variable holding the "
-                          "key (e.g. OPENAI_API_KEY), not the key itself; the value given was "
-                          "not logged")
-    key = os.environ.get(env or "", "").strip() if env else ""
-    register_secret(key)
-    if key:
-        _check_key(key, f"${env}")
-    if not key:
-        log.info("no API key in $%s: sending requests without Authorization (fine for local "
-                 "servers such as Ollama or vLLM)", env)
-    return key or None
-
-
-def _check_key(key: str, where: str) -> str:
-    if any(ord(c) < 32 or ord(c) == 127 for c in key):
-        raise ConfigError(f"the API key in {where} contains a line break or control character "
-                          "(copy-paste error?); the key was not logged")
-    return key
+    return PriorResult(Prior(parsed.lat, parsed.lon, source), source, "", latency_s, raw, extra)
 
 
 def _sniff_mime(data: bytes) -> str | None:
@@ -116,9 +105,25 @@ def prepare_image(query: PriorQuery, max_image_side: int | None) -> tuple[bytes,
     return encode_jpeg(np.ascontiguousarray(rgb), quality=90), "image/jpeg"
 
 
+def _flag(value: Any, name: str) -> bool:
+    if isinstance(value, bool):
+        return value
+    if isinstance(value, str) and value.strip().lower() in ("true", "false", "1", "0", "yes",
+                                                              "no", "on", "off"):
+        return value.strip().lower() in ("true", "1", "yes", "on")
+    raise ConfigError(f"openai prior: {name} must be true or false, got {value!r}")
+
+
 class OpenAIPrior(PriorProvider):
     """Ask a VLM behind an OpenAI-compatible ``/chat/completions`` endpoint for a coarse
-    position, with least-to-most prompting, robust parsing, retries, rate limiting and cache."""
+    position, with least-to-most prompting, robust parsing, retries, rate limiting and cache.
+
+    Request fields follow the model family (:mod:`~vlm_vpr_ros.priors.request`):
+    ``temperature`` and ``max_tokens`` default to ``auto``; ``token_param``,
+    ``model_family``, ``reasoning_effort`` and ``extra_body`` override them.
+    ``structured_output`` asks for a JSON-schema answer (``model_uncertainty`` adds the
+    model's own error radius to the schema), falling back to text answers when the endpoint
+    refuses it."""
 
     name = "openai"
 
@@ -126,38 +131,54 @@ class OpenAIPrior(PriorProvider):
                  api_key_env: str = "OPENAI_API_KEY", api_key_file: str | None = None,
                  timeout_s: float = 60.0, max_retries: int = 3, backoff_s: float = 1.0,
                  max_concurrency: int = 4, min_interval_s: float = 0.0,
-                 temperature: float = 0.0, max_image_side: int | None = 1024,
+                 temperature: Any = "auto", max_image_side: int | None = 1024,
                  parser: str = "robust", cache_dir: str | None = None, prompt: str = "ltm",
-                 max_tokens: int = 600) -> None:
+                 max_tokens: Any = "auto", token_param: str = "auto",
+                 model_family: str = "auto", reasoning_effort: str | None = None,
+                 extra_body: Any = None, structured_output: Any = False,
+                 model_uncertainty: Any = False, auth_header: str = "auto",
+                 ca_file: str | None = None) -> None:
         choose(parser, dict.fromkeys(PARSER_MODES), "answer parser")
         self.prompt = get_prompt(prompt)
         try:
             self.max_concurrency = int(max_concurrency)
-            self.temperature = float(temperature)
-            self.max_tokens = int(max_tokens)
             self.max_image_side = int(max_image_side) if max_image_side else None
             timeout_s, backoff_s = float(timeout_s), float(backoff_s)
             max_retries, min_interval_s = int(max_retries), float(min_interval_s)
         except (TypeError, ValueError) as exc:
             raise ConfigError(f"openai prior: invalid number ({exc}); timeout_s, backoff_s, "
-                              "min_interval_s, temperature are seconds/floats, max_retries, "
-                              "max_concurrency, max_tokens, max_image_side integers") from None
-        if self.max_concurrency < 1 or self.max_tokens < 1:
-            raise ConfigError("openai prior: max_concurrency and max_tokens must be >= 1")
+                              "min_interval_s are seconds, max_retries, max_concurrency, "
+                              "max_image_side integers") from None
+        if self.max_concurrency < 1:
+            raise ConfigError("openai prior: max_concurrency must be >= 1")
         if self.max_image_side is not None and self.max_image_side < 32:
             raise ConfigError("openai prior: max_image_side must be >= 32 (or null)")
         self.model = str(model)
         self.parser = parser
+        self.structured = _flag(structured_output, "structured_output")
+        uncertainty = _flag(model_uncertainty, "model_uncertainty")
+        if uncertainty and not self.structured:
+            raise ConfigError("openai prior: model_uncertainty needs structured_output=true")
+        self.response_format = (response_format(self.prompt, uncertainty) if self.structured
+                                else None)
         self.source = self.name = f"openai:{self.model}"  # name labels timeouts too
-        self.client = ChatClient(base_url, _read_api_key(api_key_env, api_key_file),
-                                 timeout_s=float(timeout_s), max_retries=int(max_retries),
-                                 backoff_s=float(backoff_s),
-                                 min_interval_s=float(min_interval_s))
+        key = read_api_key(api_key_env, api_key_file)
+        self.client = ChatClient(base_url, key, timeout_s=timeout_s, max_retries=max_retries,
+                                 backoff_s=backoff_s, min_interval_s=min_interval_s,
+                                 auth_header=str(auth_header), ca_file=ca_file)
+        self.options = request_options(
+            self.model, self.client.endpoint, family=str(model_family),
+            token_param=str(token_param), max_tokens=max_tokens, temperature=temperature,
+            reasoning_effort=reasoning_effort, extra_body=extra_body)
+        log.info("openai prior %s, model %s: %s%s", self.client.endpoint, self.model,
+                 self.options.describe(), ", structured output" if self.structured else "")
         self.cache = AnswerCache(cache_dir) if cache_dir else None
         self._pool = cf.ThreadPoolExecutor(self.max_concurrency, thread_name_prefix="vlm-prior")
         self._lock = threading.Lock()
         self._pending: dict[cf.Future, CallHandle] = {}
         self._closed = False
+        self._structured_refused = False
+        self._told: set[str] = set()  # advice already logged (once per distinct line)
 
     def __repr__(self) -> str:
         return f"OpenAIPrior({self.client.endpoint!r}, model={self.model!r})"
@@ -191,6 +212,7 @@ class OpenAIPrior(PriorProvider):
             handle.abort()
             _resolve(fut, PriorResult.failure(self.source, "cancelled"))
         self._pool.shutdown(wait=False, cancel_futures=True)
+        self.client.close()
 
     def __enter__(self) -> "OpenAIPrior":
         return self
@@ -220,28 +242,85 @@ class OpenAIPrior(PriorProvider):
             return PriorResult.failure(self.source, "no_image")
         data, mime = image
         digest = image_digest(data)
-        key = cache_key(digest, self.model, self.prompt.id)
+        answer_format = self.response_format["json_schema"]["name"] if self.structured else "text"
+        key = cache_key(digest, self.model, self.prompt.id, self.client.endpoint, answer_format)
         extra: dict[str, Any] = {"model": self.model, "prompt": self.prompt.id,
                                  "image_sha256": digest, "cached": False}
         if self.cache is not None and (entry := self.cache.get(key)) is not None:
             extra["cached"] = True
             return result_from_text(entry["raw_text"], self.source, self.parser,
-                                    time.monotonic() - t0, extra)
+                                    time.monotonic() - t0, extra,
+                                    str(entry.get("parse_path") or "text"))
         url = f"data:{mime};base64,{base64.b64encode(data).decode('ascii')}"
-        body = {"model": self.model, "messages": build_messages(self.prompt, url),
-                "temperature": self.temperature, "max_tokens": self.max_tokens}
-        reply = self.client.call(body, handle)
+        reply, path = self._ask(build_messages(self.prompt, url), handle)
         latency = time.monotonic() - t0
         extra["attempts"] = reply.attempts
         if reply.reason == "refusal" and reply.refusal:
-            return PriorResult(None, self.source, "refusal", latency, reply.refusal, extra)
+            extra["parse_path"] = path
+            return PriorResult(None, self.source, "refusal", latency, redact(reply.refusal),
+                               extra)
         if not reply.ok or reply.content is None:
+            if detail := self._explain(reply):
+                extra["detail"] = detail
             return PriorResult(None, self.source, reply.reason or "bad_response", latency,
                                None, extra)
+        result = result_from_text(reply.content, self.source, self.parser, latency, extra, path)
+        if not result.ok and reply.finish_reason == "length" and result.reason in (
+                "empty", "no_coordinates"):
+            limit = f"{self.options.token_param}={self.options.max_tokens}"
+            detail = (f"the answer was cut at {limit} before the coordinates (reasoning "
+                      "models spend tokens on hidden reasoning): raise the prior option "
+                      "max_tokens")
+            self._tell(detail)
+            return PriorResult(None, self.source, "truncated", latency, result.raw_text,
+                               {**result.extra, "detail": detail})
         if self.cache is not None:
             self.cache.put(key, reply.content, model=self.model, prompt=self.prompt.id,
-                           image_sha256=digest)
-        return result_from_text(reply.content, self.source, self.parser, latency, extra)
+                           image_sha256=digest, endpoint=self.client.endpoint,
+                           parse_path=result.extra.get("parse_path", path))
+        return result
+
+    def _ask(self, messages: list[dict[str, Any]], handle: CallHandle) -> tuple[ChatReply, str]:
+        """One call; structured output first when asked (once refused: text from then on).
+        Returns the reply and the parse path its content takes."""
+        structured = self.structured and not self._structured_refused
+        body = self.options.body(self.model, messages,
+                                 self.response_format if structured else None)
+        reply = self.client.call(body, handle)
+        if not structured:
+            return reply, "text_fallback" if self.structured else "text"
+        refused = rejection(reply.status or 0, reply.error_body or b"", body)
+        if refused is None or refused.param != "response_format":
+            return reply, "structured"
+        self._structured_refused = True
+        log.warning("%s refuses structured output (%s): reading text answers from now on",
+                    self.client.endpoint, refused.message)
+        again = self.client.call(self.options.body(self.model, messages), handle)
+        return dataclasses.replace(again, attempts=reply.attempts + again.attempts), \
+            "text_fallback"
+
+    def _explain(self, reply: ChatReply) -> str | None:
+        """One line for a request the endpoint refused (4xx): which option to change when it
+        names a request field, else the server's own message (e.g. Ollama's "model ... not
+        found, try pulling it first"). 401/403/407 are reported by the client."""
+        status = reply.status or 0
+        if not 400 <= status < 500 or status in (401, 403, 407, 408, 429):
+            return None
+        body = reply.error_body or b""
+        refused = rejection(status, body, self.options.body(self.model, [],
+                                                            self.response_format))
+        detail = (refused.advice(self.client.endpoint, self.options) if refused is not None
+                  else f"{self.client.endpoint}: HTTP {status} for model {self.model}: "
+                       f"{error_message(body) or '(no message)'}")
+        self._tell(detail)
+        return detail
+
+    def _tell(self, line: str) -> None:
+        with self._lock:
+            if line in self._told:
+                return
+            self._told.add(line)
+        log.warning("%s", line)
 
 
 def _resolve(fut: cf.Future, result: PriorResult) -> None:

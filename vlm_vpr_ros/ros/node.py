@@ -5,22 +5,27 @@ conversions in :mod:`msg_adapters`, the parameter schema in :mod:`vlm_vpr_ros.ru
 Both executables share :class:`_Wiring`, in four steps that are the lifecycle transitions:
 
 * parameters (constructor): every parameter declared once with its descriptor (type,
-  description, range, read-only); bad values stop start-up with one FATAL line, exit code 2;
+  description, range, read-only); bad values stop start-up with one FATAL line, exit code 2
+  (the lifecycle node checks that ``map_dir`` holds a map at configure, which then fails);
 * ``load`` (configure): map, prior provider, publishers, relocalize and map_reload services,
   diagnostics timer;
 * ``start`` (activate): image subscriptions and the query worker;
-* ``stop`` (deactivate): subscriptions and worker gone, map kept; ``unload`` (cleanup) frees it.
+* ``stop`` (deactivate): subscriptions and worker gone, map kept; ``unload`` (cleanup) frees it;
+* ``shutdown``: as cleanup, then the process ends (exit code 0).
 
-The plain node runs load + start in its constructor. Callback groups: images, the relocalize
-and map_reload services and the diagnostics timer each have their own mutually exclusive group
-under a MultiThreadedExecutor; queries run on the runtime's worker thread, so a slow VLM never
-delays image intake and a waiting service call never blocks the executor.
+The plain node runs load + start in its constructor. Callback groups: images, the map_reload
+service and the diagnostics timer each have their own mutually exclusive group, the relocalize
+services one reentrant group, under a MultiThreadedExecutor with a thread for each relocalize
+caller that may wait (``MAX_WAITERS``) on top of the four the other callbacks need; queries run
+on the runtime's worker thread, so a slow VLM never delays image intake and waiting callers
+never block the executor.
 """
 
 from __future__ import annotations
 
 import logging
 import sys
+import threading
 from typing import Any
 
 import rclpy
@@ -28,13 +33,17 @@ from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.node import Node
+from rclpy.task import Future
 
 from vlm_vpr_ros.errors import ConfigError, VlmVprError
 from vlm_vpr_ros.runtime.params import requested_parameters
+from vlm_vpr_ros.runtime.worker import MAX_WAITERS
 from vlm_vpr_ros.ros.wiring import _Wiring, image_qos  # noqa: F401
 from vlm_vpr_ros.redact import redact
 
 NODE_NAME = "vlm_vpr_node"
+#: executor threads: images, diagnostics, map_reload, parameter services + waiting callers
+EXECUTOR_THREADS = 4 + MAX_WAITERS
 
 
 class _RosLogHandler(logging.Handler):
@@ -64,6 +73,7 @@ class VlmVprNode(_Wiring, Node):
 
     def __init__(self, requested: dict[str, Any] | None = None, **kwargs) -> None:
         super().__init__(NODE_NAME, **kwargs)
+        self.finished = Future()  # never done: the plain node runs until SIGINT/SIGTERM
         self.cfg = self._declare_parameters(requested)
         self._load(self.create_publisher)
         self._start()
@@ -77,9 +87,20 @@ class VlmVprLifecycleNode(_Wiring, LifecycleNode):
     starts intake and publishing, ``deactivate`` stops them (the map stays loaded),
     ``cleanup`` frees the map. Parameters are declared (and checked) in the constructor."""
 
+    _map_dir_checked_at_start = False  # a missing map_dir fails configure, not start-up
+
     def __init__(self, requested: dict[str, Any] | None = None, **kwargs) -> None:
         super().__init__(NODE_NAME, **kwargs)
+        self.finished = Future()  # done after the shutdown transition: the process ends
         self.cfg = self._declare_parameters(requested)
+
+    def _release(self) -> None:
+        """cleanup: map, provider, services, timer and the lifecycle publishers."""
+        self._unload()
+        if self.outputs is not None:
+            for pub in self.outputs.managed():
+                self.destroy_lifecycle_publisher(pub)
+            self.outputs = None
 
     def _transition(self, what: str, step) -> TransitionCallbackReturn:
         try:
@@ -94,7 +115,7 @@ class VlmVprLifecycleNode(_Wiring, LifecycleNode):
             try:
                 self._load(self.create_lifecycle_publisher)
             except VlmVprError:
-                self._unload()
+                self._release()
                 raise
         return self._transition("configure", load)
 
@@ -110,20 +131,21 @@ class VlmVprLifecycleNode(_Wiring, LifecycleNode):
         return super().on_deactivate(state)
 
     def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self._unload()
-        for pub in (getattr(self, "fix_pub", None), getattr(self, "diag_pub", None)):
-            if pub is not None:
-                self.destroy_lifecycle_publisher(pub)
-        self.fix_pub = self.diag_pub = None
+        self._release()
         self.get_logger().info("cleaned up: map and prior provider released")
         return TransitionCallbackReturn.SUCCESS
 
     def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self._unload()
+        self._release()
+        self.get_logger().info("shut down: the process ends")
+        # end the spin once the change_state answer is out (rclpy's executor.shutdown does
+        # not wait for running callbacks)
+        threading.Timer(0.3, lambda: self.finished.done() or self.finished.set_result(True)
+                        ).start()
         return TransitionCallbackReturn.SUCCESS
 
     def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self._unload()
+        self._release()
         return TransitionCallbackReturn.SUCCESS
 
     def close(self) -> None:
@@ -159,10 +181,10 @@ def _run(cls: type, args: list[str] | None) -> int:
         node = cls(requested)
     except VlmVprError as exc:
         return _fatal(logger, exc)
-    executor = MultiThreadedExecutor(num_threads=4)
+    executor = MultiThreadedExecutor(num_threads=EXECUTOR_THREADS)
     executor.add_node(node)
     try:
-        executor.spin()
+        executor.spin_until_future_complete(node.finished)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:

@@ -1,42 +1,43 @@
 """The ROS 2 wiring shared by ``vlm_vpr_node`` and ``vlm_vpr_lifecycle_node`` (see node.py).
 
 :class:`_Wiring` is mixed into an rclpy ``Node`` or ``LifecycleNode``; its steps are the
-lifecycle transitions: parameters (constructor), ``_load`` (configure), ``_start`` (activate),
-``_stop`` (deactivate), ``_unload`` (cleanup).
+lifecycle transitions: parameters (constructor, :mod:`vlm_vpr_ros.ros.parameters`), ``_load``
+(configure), ``_start`` (activate), ``_stop`` (deactivate), ``_unload`` (cleanup). What goes out
+for a query is :mod:`vlm_vpr_ros.ros.outputs`.
 """
 
 from __future__ import annotations
 
 import copy
+import functools
 import gc
 import os
 import time
 from typing import Any
 
-from diagnostic_msgs.msg import DiagnosticArray
-from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
-                                ParameterType)
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
-from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from rclpy.qos_overriding_options import InvalidQosOverridesError, QoSOverridingOptions
-from sensor_msgs.msg import CompressedImage, Image, NavSatFix
+from sensor_msgs.msg import CompressedImage, Image
 from std_srvs.srv import Trigger
 
-from msg_adapters.diagnostics import diagnostic_array
 from msg_adapters.image import encoded_bytes, message_to_rgb, stamp_ns
-from msg_adapters.navsat import FixPolicy, navsat_fix
-from vlm_vpr_ros.errors import ConfigError, VlmVprError
-from vlm_vpr_ros.runtime.params import (NESTED, NodeConfig, PARAMETER_SPECS, ParamSpec,
-                                        ROS_STANDARD, from_params, type_conflicts)
+from vlm_vpr_ros.errors import ConfigError, MapError, VlmVprError
 from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
 from vlm_vpr_ros.priors import create_prior_provider
-from vlm_vpr_ros.runtime.worker import (Frame, QueryOutcome, QueryRuntime, RuntimeConfig,
-                                        outcome_summary)
+from vlm_vpr_ros.ros.outputs import Outputs, fix_policy
+from vlm_vpr_ros.ros.parameters import _Parameters
+from vlm_vpr_ros.runtime.params import NodeConfig
 from vlm_vpr_ros.runtime.stats import RuntimeStats, Throttle
+from vlm_vpr_ros.runtime.worker import (Frame, QueryOutcome, QueryRuntime, RelocalizeKind,
+                                        RuntimeConfig, outcome_summary)
 
-_ROS_TYPES = {"bool": ParameterType.PARAMETER_BOOL, "int": ParameterType.PARAMETER_INTEGER,
-              "float": ParameterType.PARAMETER_DOUBLE, "str": ParameterType.PARAMETER_STRING}
+#: the relocalize services: std_srvs/Trigger has no fields, so one service per kind of request
+RELOCALIZE_SERVICES = {
+    "relocalize": RelocalizeKind("latest", True),
+    "relocalize_next_frame": RelocalizeKind("next", True),
+    "relocalize_no_prior": RelocalizeKind("latest", False),
+}
 
 
 def image_qos(name: str, depth: int) -> QoSProfile:
@@ -53,57 +54,20 @@ def image_qos(name: str, depth: int) -> QoSProfile:
     return QoSProfile(depth=depth, reliability=rel)
 
 
-def parameter_descriptor(spec: ParamSpec) -> ParameterDescriptor:
-    """The ROS descriptor of one schema parameter (``ros2 param describe`` shows it)."""
-    d = ParameterDescriptor(name=spec.name, type=_ROS_TYPES[spec.kind], description=spec.doc,
-                            read_only=spec.read_only)
-    if spec.choices:
-        d.additional_constraints = f"one of: {', '.join(spec.choices)}"
-    if spec.range is not None:
-        lo, hi = spec.range
-        if spec.kind == "int":
-            d.integer_range = [IntegerRange(from_value=int(lo), to_value=int(hi), step=1)]
-        else:
-            d.floating_point_range = [FloatingPointRange(from_value=float(lo),
-                                                         to_value=float(hi), step=0.0)]
-    return d
+def runtime_config(cfg: NodeConfig) -> RuntimeConfig:
+    return RuntimeConfig(cfg.mode, cfg.min_period_s, cfg.prior_timeout_s, cfg.max_frame_age_s)
 
 
-class _Wiring:
+class _Wiring(_Parameters):
     """The implementation shared by :class:`VlmVprNode` and :class:`VlmVprLifecycleNode`
     (mixed into an rclpy ``Node`` / ``LifecycleNode``)."""
 
     cfg: NodeConfig
     pipeline: LocalizationPipeline | None = None
     runtime: QueryRuntime | None = None
+    outputs: Outputs | None = None
     _provider: Any = None
     _active = False
-
-    # -- parameters ------
-    def _declare_parameters(self, requested: dict[str, Any] | None) -> NodeConfig:
-        """Validate what rclpy received (plus what the command line asked for, which rcl may
-        have dropped on a type clash), then declare every parameter once with its descriptor.
-        Raises ConfigError on any bad name, type or value."""
-        overrides: dict[str, Parameter] = self._parameter_overrides  # rclpy: -p, params files
-        received = {k: p.value for k, p in overrides.items()}
-        values = {**received, **(requested or {})}
-        ours = {k: v for k, v in values.items()
-                if k not in ROS_STANDARD and not k.startswith("qos_overrides.")}
-        cfg = from_params(ours)
-        clashes = type_conflicts(requested or {}, received)
-        if clashes:
-            raise ConfigError(clashes[0])
-        for name, spec in PARAMETER_SPECS.items():
-            if name in overrides:  # the validated value (ints given for floats become floats)
-                overrides[name] = Parameter(name, value=getattr(cfg, name))
-            self.declare_parameter(name, spec.default, parameter_descriptor(spec))
-        for key in sorted(k for k in ours if k.partition(".")[0] in NESTED):
-            head = key.partition(".")[0]
-            self.declare_parameter(key, overrides[key].value if key in overrides else ours[key],
-                                   ParameterDescriptor(
-                                       description=f"{head} setting (see docs/node.md)",
-                                       read_only=True, dynamic_typing=True))
-        return cfg
 
     # -- clock ------
     def _now_s(self) -> float:
@@ -117,31 +81,37 @@ class _Wiring:
     def _load(self, make_publisher) -> None:
         cfg = self.cfg
         t0 = time.monotonic()
+        path = os.path.expanduser(cfg.map_dir)
+        if not os.path.isdir(path):
+            raise MapError(f"map_dir {cfg.map_dir!r} does not exist or is not a folder")
+        if not os.access(path, os.R_OK | os.X_OK):
+            raise MapError(f"map_dir {cfg.map_dir!r} is not readable by this process")
         self.pipeline = LocalizationPipeline.open(
-            os.path.expanduser(cfg.map_dir), descriptor=cfg.descriptor or None,
-            localizer=cfg.localizer_config(), descriptor_config=cfg.descriptor_options,
-            verify=cfg.verify_map)
+            path, descriptor=cfg.descriptor or None, localizer=cfg.localizer_config(),
+            descriptor_config=cfg.descriptor_options, verify=cfg.verify_map,
+            verification=cfg.verification_config(), status=cfg.status_policy())
         self._provider = create_prior_provider(cfg.prior_provider, cfg.prior)
-        self.policy = FixPolicy(cfg.fallback_status, cfg.fallback_min_sigma_m, cfg.altitude_m,
-                                cfg.altitude_sigma_m, cfg.fix_max_sigma_m)
+        self.policy = fix_policy(cfg)
         self._flag_log = Throttle(10.0)
         self._stats = RuntimeStats(self._provider.name, cfg.mode)
-        self.fix_pub = make_publisher(NavSatFix, "fix", 10)
-        self.diag_pub = make_publisher(DiagnosticArray, "/diagnostics", 10)
-        group = MutuallyExclusiveCallbackGroup
-        # reentrant + a deep request queue: a burst of calls all get an answer (the runtime
-        # lets two wait for the shared query and answers the others at once)
-        self._reloc_srv = self.create_service(
-            Trigger, "relocalize", self._on_relocalize,
+        m = self.pipeline.map
+        self.outputs = Outputs(self, make_publisher, cfg, m.path, m.manifest)
+        if cfg.publish_debug:
+            self.outputs.ensure_debug()
+        # reentrant + a deep request queue: every caller of a burst waits for the shared
+        # query on its own executor thread (node.py sizes the executor for it)
+        reloc_group = ReentrantCallbackGroup()
+        self._own_services = [self.create_service(
+            Trigger, name, functools.partial(self._on_relocalize, kind),
             qos_profile=QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE),
-            callback_group=ReentrantCallbackGroup())
-        self._reload_srv = self.create_service(Trigger, "map_reload", self._on_map_reload,
-                                               callback_group=group())
+            callback_group=reloc_group) for name, kind in RELOCALIZE_SERVICES.items()]
+        self._own_services.append(self.create_service(
+            Trigger, "map_reload", self._on_map_reload,
+            callback_group=MutuallyExclusiveCallbackGroup()))
         self._diag_timer = self.create_timer(cfg.diagnostics_period_s, self._publish_diagnostics,
-                                             callback_group=group())
+                                             callback_group=MutuallyExclusiveCallbackGroup())
         self._images_group = MutuallyExclusiveCallbackGroup()
         self._subs: list[Any] = []
-        m = self.pipeline.map
         self.get_logger().info(
             f"map loaded in {time.monotonic() - t0:.1f} s: {cfg.map_dir} "
             f"({m.manifest.get('n_references', '?')} references, {len(m.submaps)} submaps, "
@@ -152,10 +122,11 @@ class _Wiring:
         if getattr(self, "_diag_timer", None) is not None:
             self.destroy_timer(self._diag_timer)
             self._diag_timer = None
-        for attr in ("_reloc_srv", "_reload_srv"):
-            if getattr(self, attr, None) is not None:
-                self.destroy_service(getattr(self, attr))
-                setattr(self, attr, None)
+        for srv in getattr(self, "_own_services", []):
+            self.destroy_service(srv)
+        self._own_services = []
+        if self.outputs is not None:
+            self.outputs.destroy_debug()
         if self._provider is not None:
             self._provider.close()
             self._provider = None
@@ -166,10 +137,11 @@ class _Wiring:
     def _start(self) -> None:
         cfg = self.cfg
         self.runtime = QueryRuntime(
-            self.pipeline, self._provider,
-            RuntimeConfig(cfg.mode, cfg.min_period_s, cfg.prior_timeout_s, cfg.max_frame_age_s),
-            decode=message_to_rgb, on_outcome=self._publish_outcome, encoded=encoded_bytes,
-            clock=self._now_s, stats=self._stats)
+            self.pipeline, self._provider, runtime_config(cfg), decode=message_to_rgb,
+            on_outcome=self._publish_outcome, encoded=encoded_bytes, clock=self._now_s,
+            stats=self._stats)
+        self.runtime.update(localizer=cfg.localizer_config())
+        self.runtime.keep_images = cfg.publish_debug
         topics = []
         try:
             for enabled, msg_type, topic in ((cfg.subscribe_raw, Image, "image"),
@@ -194,7 +166,7 @@ class _Wiring:
         self.get_logger().info(
             f"localizing: mode {cfg.mode}, images {', '.join(topics)} ({cfg.qos}: {rel}, depth "
             f"{qos.depth if qos is not None else '?'}), fixes on "
-            f"{self.resolve_topic_name('fix')}")
+            f"{self.resolve_topic_name('fix')} ({cfg.fix_durability})")
 
     def _stop(self) -> None:
         self._active = False
@@ -206,6 +178,21 @@ class _Wiring:
             self.pipeline = self.runtime.pipeline  # as map_reload may have swapped it
             self.runtime = None
 
+    def _settings_changed(self) -> None:
+        """Runtime tuning (ros/parameters.py): pass the new settings on."""
+        cfg = self.cfg
+        self.policy = fix_policy(cfg)
+        if self.runtime is not None:
+            self.runtime.update(runtime_config(cfg), cfg.localizer_config(),
+                                cfg.status_policy(), cfg.verify_top_k)
+            self.runtime.keep_images = cfg.publish_debug
+        if self._stats is not None:
+            self._stats.mode = cfg.mode
+        if cfg.publish_debug and self.outputs is not None:
+            self.outputs.ensure_debug()
+
+    _stats: RuntimeStats | None = None
+
     # -- callbacks -----
     def _on_image(self, msg) -> None:
         runtime = self.runtime
@@ -214,14 +201,14 @@ class _Wiring:
         stamp = stamp_ns(msg) or self.get_clock().now().nanoseconds
         runtime.on_frame(Frame(msg, stamp, str(msg.header.frame_id)))
 
-    def _on_relocalize(self, request, response):
+    def _on_relocalize(self, kind: RelocalizeKind, request, response):
         runtime = self.runtime
         if runtime is None or not self._active:
             response.success = False
             response.message = f"{self.get_name()} is not active: activate it first"
             return response
         response.success, response.message = runtime.relocalize(
-            self.cfg.relocalize_wait_s, self.resolve_topic_name("fix"))
+            self.cfg.relocalize_wait_s, self.resolve_topic_name("fix"), kind)
         return response
 
     def _on_map_reload(self, request, response):
@@ -245,12 +232,11 @@ class _Wiring:
 
     # -- output -----
     def _publish_outcome(self, out: QueryOutcome) -> None:
-        if not self._active:
+        if not self._active or self.outputs is None:
             return
-        hyp = out.hypothesis
+        cfg, hyp = self.cfg, out.hypothesis
+        self.outputs.publish(out, cfg, self.policy)
         if hyp is not None:
-            frame_id = self.cfg.frame_id or out.frame.frame_id
-            self.fix_pub.publish(navsat_fix(hyp, out.frame.stamp_ns, frame_id, self.policy))
             summary = outcome_summary(out, 0.0)[1]  # "fix for frame ..." in continuous mode
             if hyp.flagged and self._flag_log.ready():
                 self.get_logger().warning(summary)
@@ -263,15 +249,16 @@ class _Wiring:
         self._publish_diagnostics()
 
     def _publish_diagnostics(self) -> None:
-        if not self._active or self.pipeline is None:
+        if not self._active or self.pipeline is None or self.outputs is None:
             return
         runtime = self.runtime
         level, message, values = self._stats.report(busy=bool(runtime and runtime.busy))
         pipe = runtime.pipeline if runtime is not None else self.pipeline
         values = {"map_dir": self.cfg.map_dir, "descriptor": pipe.descriptor.name,
                   "fusion": self.cfg.fusion, "calibration": pipe.localizer.calibration_source,
+                  "verification": pipe.verifier.unavailable or "on, p_correct calibrated by "
+                  + pipe.verifier.calibration_source,
                   "map_references": pipe.map.n_references,
                   "map_generation": pipe.map.manifest.get("generation", 0), **values}
-        self.diag_pub.publish(diagnostic_array(
-            self.get_clock().now().nanoseconds, f"{self.get_name()}: VPR geo-localization",
-            self.cfg.hardware_id, level, message, values))
+        self.outputs.publish_diagnostics(self.get_clock().now().nanoseconds, level, message,
+                                         values, self.cfg.hardware_id)

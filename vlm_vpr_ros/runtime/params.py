@@ -3,7 +3,10 @@
 Every parameter is a field of :class:`NodeConfig` with its default, a one-line description, an
 optional range and choices (:data:`PARAMETER_SPECS`); the node declares each one once from this
 schema with a ``ParameterDescriptor`` (type, description, range, read-only), so
-``ros2 param describe`` and docs/node.md show the same text. Provider settings are nested
+``ros2 param describe`` and docs/node.md show the same text. Parameters marked ``writable`` may
+change at runtime (``ros2 param set``; :data:`RUNTIME_WRITABLE`), validated by the same
+:func:`from_params`; the others are structural and :func:`refusal_reason` says how to change
+them. Provider settings are nested
 under ``prior.`` (``prior.base_url``, ``prior.model``, ``prior.lat`` ...) and descriptor options
 under ``descriptor_options.``; both are passed through to the registries, which reject unknown
 keys. Unknown top-level names and wrongly typed values raise :class:`ConfigError`.
@@ -21,10 +24,15 @@ from typing import Any, Mapping
 from vlm_vpr_ros.errors import ConfigError
 from vlm_vpr_ros.geodesy import MAX_DISTANCE_KM
 from vlm_vpr_ros.localization.localizer import FUSION_MODES, LocalizerConfig
+from vlm_vpr_ros.localization.verification.stage import VerificationConfig
+from vlm_vpr_ros.localization.verification.status import StatusPolicy
 
 MODES = ("continuous", "on_trigger")
 QOS_CHOICES = ("sensor_data", "best_effort", "reliable")
 FALLBACK_STATUS = ("no_fix", "fix")
+DURABILITY = ("volatile", "transient_local")
+POSE_FRAMES = ("utm", "local_enu", "none")
+POSE_ON = ("relocalize", "every_fix")
 NESTED = ("prior", "descriptor_options")
 #: the largest radius a fix may carry (half the Earth's circumference, m)
 MAX_SIGMA_M = MAX_DISTANCE_KM * 1000.0
@@ -33,10 +41,12 @@ ROS_STANDARD = frozenset({"use_sim_time", "start_type_description_service"})
 
 
 def _p(default: Any, doc: str, lo: float | None = None, hi: float | None = None,
-       choices: tuple[str, ...] | None = None) -> Any:
-    """A parameter field: default, description, inclusive range [lo, hi], string choices."""
+       choices: tuple[str, ...] | None = None, writable: bool = False) -> Any:
+    """A parameter field: default, description, inclusive range [lo, hi], string choices;
+    ``writable``: may change at runtime (takes effect on the next query)."""
     return field(default=default, metadata={"doc": doc, "range": (lo, hi) if lo is not None
-                                            else None, "choices": choices})
+                                            else None, "choices": choices,
+                                            "writable": writable})
 
 
 @dataclass(frozen=True)
@@ -49,7 +59,7 @@ class ParamSpec:
     kind: str  # "bool", "int", "float" or "str"
     range: tuple[float, float] | None = None  # inclusive
     choices: tuple[str, ...] | None = None
-    read_only: bool = True  # read once at start-up (configure): runtime changes are refused
+    read_only: bool = True  # structural: read once at start-up (configure), changes refused
 
 
 @dataclass(frozen=True)
@@ -57,26 +67,31 @@ class NodeConfig:
     map_dir: str = _p("", "map folder built by `vlm-vpr build-map` (required)")
     descriptor: str = _p("", "descriptor name; must match the map's ('' = the map's own)")
     verify_map: bool = _p(False, "check the sha256 of every map file at start and on "
-                                 "map_reload (slow for large maps; sizes and the manifest are "
-                                 "always checked)")
+                                 "map_reload (slow for large maps; the manifest, sizes and "
+                                 "content fingerprints are always checked)")
     prior_provider: str = _p("none", "prior source: none, fixed, recorded, answers, openai; "
                                      "settings under prior.*")
     prior_timeout_s: float = _p(30.0, "longest wait for a prior; then a flagged global fix",
-                              0.001, 3600.0)
-    top_p: int = _p(50, "references retrieved before fusion with the prior", 1, 100000)
+                                0.001, 3600.0, writable=True)
+    top_p: int = _p(50, "references retrieved before fusion with the prior", 1, 100000,
+                    writable=True)
     fusion: str = _p("posterior", "posterior: visual + prior likelihood over the submaps in the "
                                   "prior's confidence region (docs/fusion.md); paper: nearest "
                                   "submap + re-rank by distance to the prior",
-                     choices=FUSION_MODES)
-    use_submaps: bool = _p(True, "restrict the search to submap(s) chosen by the prior")
-    rerank: bool = _p(True, "use the prior when ranking candidates (false: visual order)")
+                     choices=FUSION_MODES, writable=True)
+    use_submaps: bool = _p(True, "restrict the search to submap(s) chosen by the prior",
+                           writable=True)
+    rerank: bool = _p(True, "use the prior when ranking candidates (false: visual order)",
+                      writable=True)
     n_submaps: int = _p(1, "paper fusion: number of submaps searched around the prior", 1,
-                        100000)
+                        100000, writable=True)
     mode: str = _p("continuous", "continuous: query the latest frame every min_period_s; "
-                                 "on_trigger: only on the relocalize service", choices=MODES)
+                                 "on_trigger: only on the relocalize services", choices=MODES,
+                   writable=True)
     min_period_s: float = _p(1.0, "least time between the starts of two queries (node clock: "
-                                 "sim time with use_sim_time)", 0.0, 86400.0)
-    frame_id: str = _p("", "header.frame_id of the fix ('' = the image's frame_id)")
+                                 "sim time with use_sim_time)", 0.0, 86400.0, writable=True)
+    frame_id: str = _p("", "header.frame_id of the fix ('' = the image's frame_id)",
+                       writable=True)
     qos: str = _p("sensor_data", "image subscription QoS: sensor_data (best effort: receives "
                                   "from best-effort and reliable cameras), best_effort, reliable; "
                                   "qos_overrides.<topic>.subscription.* override it",
@@ -84,29 +99,84 @@ class NodeConfig:
     qos_depth: int = _p(5, "image subscription queue depth (1-10; the node keeps 1 frame)", 1, 10)
     subscribe_raw: bool = _p(True, "subscribe to 'image' (sensor_msgs/Image)")
     subscribe_compressed: bool = _p(False, "subscribe to 'image/compressed'")
-    relocalize_wait_s: float = _p(35.0, "relocalize service: wait this long for the new fix "
-                                        "(0 = answer at once that it is scheduled)", 0.0, 3600.0)
+    relocalize_wait_s: float = _p(35.0, "relocalize services: wait this long for the new fix "
+                                        "(0 = answer at once that it is scheduled)", 0.0, 3600.0,
+                                  writable=True)
     max_frame_age_s: float = _p(2.0, "relocalize uses the latest frame if received within "
                                      "this many seconds (node clock), else the next frame",
-                                0.001, 86400.0)
+                                0.001, 86400.0, writable=True)
+    verify_top_k: int = _p(20, "candidates verified with local features + geometry per query "
+                               "(0 = off: every answer unverified, STATUS_NO_FIX)", 0, 1000,
+                           writable=True)
+    verification_required: bool = _p(False, "a map without usable local features (and no "
+                                            "reference_images_dir) fails configure; false: "
+                                            "a warning and unverified answers")
+    fix_min_p_correct: float = _p(0.95, "STATUS_FIX only when the verified answer's p_correct "
+                                        "(calibrated probability of being within 25 m) is at "
+                                        "least this", 0.5, 1.0, writable=True)
     fix_max_sigma_m: float = _p(50.0, "STATUS_FIX only when the fix's calibrated per-axis "
                                       "sigma is at most this (m); else STATUS_NO_FIX", 0.001,
-                                MAX_SIGMA_M)
-    fallback_status: str = _p("no_fix", "NavSatFix status of fixes whose sigma exceeds "
-                                        "fix_max_sigma_m: no_fix or fix",
-                              choices=FALLBACK_STATUS)
-    fallback_min_sigma_m: float = _p(0.0, "least 1-sigma of a fix exceeding fix_max_sigma_m "
-                                          "(m; 0 = its calibrated sigma)", 0.0, MAX_SIGMA_M)
+                                MAX_SIGMA_M, writable=True)
+    trust_prior_for_fix: bool = _p(False, "an answer decisive only because the prior removed "
+                                          "far look-alikes (prior_resolved) may be STATUS_FIX",
+                                   writable=True)
+    trust_operator_prior: bool = _p(False, "... only when the prior carries its own sigma_km "
+                                           "(an operator's hint: the fixed provider)",
+                                    writable=True)
+    fallback_status: str = _p("no_fix", "NavSatFix status of answers failing the status rule "
+                                        "(docs/verification.md): no_fix or fix",
+                              choices=FALLBACK_STATUS, writable=True)
+    fallback_min_sigma_m: float = _p(0.0, "least 1-sigma of an answer failing the status rule "
+                                          "(m; 0 = its calibrated sigma)", 0.0, MAX_SIGMA_M,
+                                     writable=True)
     altitude_m: float = _p(0.0, "altitude published in the fix (images give none)",
-                           -11000.0, 100000.0)
+                           -11000.0, 100000.0, writable=True)
     altitude_sigma_m: float = _p(1000.0, "1-sigma of the published altitude (m)", 0.001,
-                                 MAX_SIGMA_M)
+                                 MAX_SIGMA_M, writable=True)
+    fix_durability: str = _p("volatile", "QoS durability of 'fix' and 'pose' (reliable): "
+                                         "transient_local keeps the last one for subscribers "
+                                         "that join later; volatile keeps none",
+                             choices=DURABILITY)
+    pose_frame: str = _p("utm", "metric frame of the 'pose' output "
+                                "(PoseWithCovarianceStamped, STATUS_FIX results only): utm, "
+                                "local_enu (tangent plane at datum_lat/datum_lon) or none",
+                         choices=POSE_FRAMES)
+    pose_frame_id: str = _p("", "header.frame_id of the pose ('' = 'utm' or 'local_enu', the "
+                                "frames of navsat_transform's broadcast_cartesian_transform)")
+    pose_on: str = _p("relocalize", "which fixes also go out as a pose: relocalize (answers to "
+                                    "the relocalize services: an initial pose) or every_fix",
+                      choices=POSE_ON, writable=True)
+    utm_zone: int = _p(0, "pose_frame utm: 0 = the zone of each fix (Norway/Svalbard "
+                          "exceptions included); 1-60 = always this zone (navsat_transform "
+                          "keeps the zone of its datum)", 0, 60)
+    # no declared range: NaN (unset) is their default; validate() checks -90..90 / -180..180
+    datum_lat: float = _p(math.nan, "pose_frame local_enu: latitude of the frame's origin "
+                                    "(deg, -90..90; required for local_enu)")
+    datum_lon: float = _p(math.nan, "pose_frame local_enu: longitude of the frame's origin "
+                                    "(deg, -180..180; required for local_enu)")
+    datum_yaw: float = _p(0.0, "pose_frame local_enu: angle of the frame's x axis from east, "
+                               "counter-clockwise (rad; 0 = x east, y north)",
+                          -2 * math.pi, 2 * math.pi)
+    publish_debug: bool = _p(False, "publish ~/debug_image/compressed (query beside the chosen "
+                                    "reference) and ~/candidates for every query",
+                             writable=True)
+    reference_images_dir: str = _p("", "folder of the map's reference images: verification of "
+                                       "maps that store no local features, and the debug view "
+                                       "('' = the map's own images/ folder, if it has one)")
     diagnostics_period_s: float = _p(1.0, "period of /diagnostics (also sent after each fix)",
                                      0.01, 3600.0)
-    hardware_id: str = _p("vlm_vpr", "DiagnosticStatus.hardware_id")
+    hardware_id: str = _p("vlm_vpr", "DiagnosticStatus.hardware_id", writable=True)
     prior: dict = field(default_factory=dict, metadata={"doc": "prior provider settings"})
     descriptor_options: dict = field(default_factory=dict,
                                      metadata={"doc": "descriptor settings (device, weights)"})
+
+    def verification_config(self) -> VerificationConfig:
+        return VerificationConfig(self.verify_top_k, self.verification_required,
+                                  os.path.expanduser(self.reference_images_dir))
+
+    def status_policy(self) -> StatusPolicy:
+        return StatusPolicy(self.fix_min_p_correct, self.fix_max_sigma_m,
+                            self.trust_prior_for_fix, self.trust_operator_prior)
 
     def localizer_config(self) -> LocalizerConfig:
         return LocalizerConfig(top_p=self.top_p, fusion=self.fusion,
@@ -117,13 +187,33 @@ class NodeConfig:
 #: scalar parameters: name → spec, in declaration order
 PARAMETER_SPECS: dict[str, ParamSpec] = {
     f.name: ParamSpec(f.name, f.default, f.metadata["doc"], str(f.type),
-                      f.metadata.get("range"), f.metadata.get("choices"))
+                      f.metadata.get("range"), f.metadata.get("choices"),
+                      read_only=not f.metadata.get("writable", False))
     for f in dataclasses.fields(NodeConfig) if f.name not in NESTED
 }
+#: parameters that may change at runtime (validated like at start-up, used from the next query)
+RUNTIME_WRITABLE = frozenset(n for n, p in PARAMETER_SPECS.items() if not p.read_only)
 #: scalar parameters: name → (default, description), in declaration order
 PARAMETERS: dict[str, tuple[Any, str]] = {n: (p.default, p.doc)
                                           for n, p in PARAMETER_SPECS.items()}
 _TYPES = {f.name: f.type for f in dataclasses.fields(NodeConfig)}
+_MAP_SETTINGS = ("map_dir", "descriptor", "verify_map", "descriptor_options")
+
+
+def refusal_reason(name: str) -> str:
+    """Why a structural parameter cannot change at runtime, and how to change it."""
+    head = name.partition(".")[0]
+    restart = f"restart the node with the new value (-p {name}:=... or the params file)"
+    if head in _MAP_SETTINGS:
+        how = ("the map and its descriptor are loaded at start (lifecycle: configure); to use "
+               f"what changed inside map_dir call the map_reload service, otherwise {restart}")
+    elif head in ("prior_provider", "prior"):
+        how = f"the prior provider is created at start (lifecycle: configure); {restart}"
+    else:
+        how = f"topics, QoS, frames and timers are set up at start; {restart}"
+    writable = ", ".join(sorted(RUNTIME_WRITABLE))
+    return (f"parameter {name!r} cannot change at runtime: {how}. Writable at runtime: "
+            f"{writable}")
 
 
 def _coerce(name: str, value: Any) -> Any:
@@ -139,8 +229,9 @@ def _coerce(name: str, value: Any) -> Any:
     return float(value) if kind == "float" else value
 
 
-def from_params(values: Mapping[str, Any]) -> NodeConfig:
-    """Validate flat ROS parameter values (``prior.x`` nested names allowed) into a config."""
+def from_params(values: Mapping[str, Any], check_paths: bool = True) -> NodeConfig:
+    """Validate flat ROS parameter values (``prior.x`` nested names allowed) into a config
+    (``check_paths``: see :func:`validate`)."""
     flat: dict[str, Any] = {}
     nested: dict[str, dict[str, Any]] = {n: {} for n in NESTED}
     for key, value in values.items():
@@ -155,7 +246,7 @@ def from_params(values: Mapping[str, Any]) -> NodeConfig:
             raise ConfigError(f"unknown parameter {key!r}; valid: {', '.join(PARAMETERS)}, "
                               f"prior.<setting>, descriptor_options.<setting>")
     cfg = NodeConfig(**flat, **nested)
-    validate(cfg)
+    validate(cfg, check_paths)
     return cfg
 
 
@@ -168,12 +259,17 @@ def _choice(name: str, value: str, choices: tuple[str, ...]) -> None:
     _require(value in choices, f"parameter {name!r} is {value!r}; choices: {', '.join(choices)}")
 
 
-def validate(cfg: NodeConfig) -> None:
-    """Raise ConfigError with a clear message for the first invalid value."""
+def validate(cfg: NodeConfig, check_paths: bool = True) -> None:
+    """Raise ConfigError with a clear message for the first invalid value. ``check_paths``:
+    also require ``map_dir`` to be a folder (the lifecycle node checks it at configure)."""
     _require(bool(cfg.map_dir.strip()), "parameter 'map_dir' is required (a map folder built "
                                         "by `vlm-vpr build-map`)")
-    _require(os.path.isdir(os.path.expanduser(cfg.map_dir)),
-             f"parameter 'map_dir': {cfg.map_dir!r} is not a folder")
+    if check_paths:
+        _require(os.path.isdir(os.path.expanduser(cfg.map_dir)),
+                 f"parameter 'map_dir': {cfg.map_dir!r} is not a folder")
+        _require(not cfg.reference_images_dir or os.path.isdir(os.path.expanduser(
+            cfg.reference_images_dir)), f"parameter 'reference_images_dir': "
+            f"{cfg.reference_images_dir!r} is not a folder")
     _choice("mode", cfg.mode, MODES)
     _choice("qos", cfg.qos, QOS_CHOICES)
     _choice("fallback_status", cfg.fallback_status, FALLBACK_STATUS)
@@ -189,6 +285,12 @@ def validate(cfg: NodeConfig) -> None:
                                        f"got {cfg.qos_depth}")
     _require(cfg.subscribe_raw or cfg.subscribe_compressed,
              "subscribe_raw and subscribe_compressed are both false: nothing to localize")
+    for name, bound in (("datum_lat", 90.0), ("datum_lon", 180.0)):
+        v = getattr(cfg, name)
+        _require(math.isnan(v) or -bound <= v <= bound,
+                 f"parameter {name!r} must be in [{-bound:g}, {bound:g}], got {v}")
+        _require(cfg.pose_frame != "local_enu" or math.isfinite(v),
+                 f"pose_frame 'local_enu' needs the parameter {name!r} (the frame's origin)")
     cfg.localizer_config()  # raises ConfigError on top_p/n_submaps < 1, unknown fusion
     for spec in PARAMETER_SPECS.values():  # the declared ranges (after the specific checks)
         v = getattr(cfg, spec.name)

@@ -6,6 +6,7 @@ import threading
 import time
 from typing import Any
 
+from vlm_vpr_ros.localization.verification.status import horizontal_sigma
 from vlm_vpr_ros.types import Hypothesis
 
 #: a decode error this recent keeps the diagnostics at WARN
@@ -14,7 +15,7 @@ RECENT_ERROR_S = 10.0
 NO_FRAMES_WARN_S = 5.0
 _COUNTERS = ("frames_received", "frames_processed", "frames_dropped", "decode_errors",
              "queries", "fixes", "flagged_fixes", "query_errors", "relocalize_requests",
-             "map_reloads", "map_reload_failures")
+             "map_reloads", "map_reload_failures", "status_fix", "verified")
 
 
 class Throttle:
@@ -76,9 +77,15 @@ class RuntimeStats:
             self.counts["queries"] += 1
             self.counts["fixes"] += 1
             self.counts["flagged_fixes"] += int(hyp.flagged)
+            self.counts["status_fix"] += int(hyp.status == "fix")
+            self.counts["verified"] += int(hyp.verification == "verified")
             pr = hyp.prior_result
             self.last = {
-                "lat": hyp.lat, "lon": hyp.lon, "sigma_m": hyp.uncertainty_m,
+                "lat": hyp.lat, "lon": hyp.lon, "sigma_m": horizontal_sigma(hyp),
+                "status": "STATUS_FIX" if hyp.status == "fix" else "STATUS_NO_FIX",
+                "status_reason": hyp.status_reason, "verification": hyp.verification or "none",
+                "p_correct": hyp.p_correct, "inliers": hyp.inliers,
+                "inlier_ratio": hyp.inlier_ratio,
                 "radius68_m": hyp.uncertainty_m, "radius95_m": hyp.radius95_m,
                 "confidence": hyp.confidence, "fusion": hyp.fusion or "none",
                 "ref_id": hyp.ref_id, "submap": hyp.submap, "candidates": len(hyp.candidates),
@@ -86,6 +93,7 @@ class RuntimeStats:
                 "prior_source": hyp.prior.source if hyp.prior else (pr.source if pr else "none"),
                 "prior_ok": bool(pr and pr.ok),
                 "prior_reason": (pr.reason if pr else "") or ("ok" if pr and pr.ok else ""),
+                "prior_parse": str(pr.extra.get("parse_path") or "") if pr else "",
                 "prior_latency_s": pr.latency_s if pr else 0.0,
                 **{k: round(v, 2) for k, v in timings_ms.items()},
                 "at": time.monotonic(),
@@ -126,11 +134,15 @@ class RuntimeStats:
         if not last:
             return "OK", ("waiting for a relocalize request" if self.mode == "on_trigger"
                           else "waiting for the first fix"), values
+        what = (f"no prior ({last['prior_reason'] or 'none'}), global retrieval"
+                if not last["prior_ok"] else f"prior {last['prior_source']}")
+        if last["status"] != "STATUS_FIX":  # the same status and sigma as the published fix
+            flags = f" [{last['flags']}]" if last["flagged"] else ""
+            return "WARN", (f"no precise fix: STATUS_NO_FIX ({last['status_reason']}), "
+                            f"sigma {last['sigma_m']:.0f} m, {what}{flags}"), values
         if last["flagged"]:
-            what = (f"no prior ({last['prior_reason'] or 'none'}), global retrieval"
-                    if not last["prior_ok"] else f"prior {last['prior_source']}")
-            return "WARN", (f"flagged fix [{last['flags']}]: {what}, "
+            return "WARN", (f"flagged fix [{last['flags']}]: {what}, STATUS_FIX, "
                             f"sigma {last['sigma_m']:.0f} m"), values
-        return "OK", (f"fix {last['lat']:.5f}, {last['lon']:.5f} sigma "
-                      f"{last['sigma_m']:.0f} m, prior {last['prior_source']}, "
-                      f"submap {last['submap']}"), values
+        return "OK", (f"fix {last['lat']:.5f}, {last['lon']:.5f} STATUS_FIX sigma "
+                      f"{last['sigma_m']:.0f} m, p_correct {last['p_correct']:.3f}, prior "
+                      f"{last['prior_source']}, submap {last['submap']}"), values

@@ -3,11 +3,15 @@
 Threads: the image callback only calls :meth:`QueryRuntime.on_frame`, which stores the still
 undecoded message in a one-frame slot (a newer frame replaces an unused one: *dropped by design*,
 counted). One worker thread takes frames when a query is due — every ``min_period_s`` in
-``continuous`` mode, on :meth:`QueryRuntime.request_relocalize` in both modes — decodes the
+``continuous`` mode, on :meth:`QueryRuntime.request_relocalize` in both modes (kinds of requests:
+:mod:`vlm_vpr_ros.runtime.relocalize`) — decodes the
 frame, starts the prior request (asynchronous, see :mod:`vlm_vpr_ros.priors.base`), computes the
 descriptor meanwhile, waits for the prior at most ``prior_timeout_s``, localizes (flagged global
 retrieval when the prior failed) and hands a :class:`QueryOutcome` to ``on_outcome``. Nothing
-here queues more than one frame and one relocalization request.
+here queues more than one frame and one pending relocalization per kind.
+
+Runtime tuning: :meth:`QueryRuntime.update` swaps the rate/timeout settings and the localizer's
+per-query settings (``top_p`` ...); the next query uses them, a running query keeps its own.
 
 Time: ``min_period_s`` and frame ages (``max_frame_age_s``) are measured on the ``clock`` given
 to :class:`QueryRuntime` (the node passes its ROS clock, so they follow ``/clock`` under
@@ -18,6 +22,7 @@ a loop) restarts the period instead of stalling the queries.
 from __future__ import annotations
 
 import concurrent.futures as cf
+import dataclasses
 import logging
 import threading
 import time
@@ -27,13 +32,23 @@ from typing import Any, Callable
 import numpy as np
 
 from vlm_vpr_ros.errors import ConfigError, ImageDecodeError, VlmVprError
+from vlm_vpr_ros.localization.localizer import LocalizerConfig
 from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
 from vlm_vpr_ros.priors.base import PriorProvider, PriorQuery, PriorResult
+from vlm_vpr_ros.runtime.relocalize import (RelocalizeKind, RelocalizeTicket,
+                                            outcome_summary)
 from vlm_vpr_ros.runtime.stats import RuntimeStats, Throttle
 from vlm_vpr_ros.types import Hypothesis
 
 log = logging.getLogger(__name__)
 MODES = ("continuous", "on_trigger")
+#: relocalize callers that may wait for the shared outcome at once (the node gives its
+#: executor this many threads more than it needs otherwise); more are told it is scheduled
+MAX_WAITERS = 32
+#: LocalizerConfig fields that runtime tuning may change (read per query by the localizer)
+TUNABLE_LOCALIZER = ("top_p", "fusion", "use_submaps", "rerank", "n_submaps")
+__all__ = ["Frame", "MAX_WAITERS", "QueryOutcome", "QueryRuntime", "RelocalizeKind",
+           "RelocalizeTicket", "RuntimeConfig", "outcome_summary"]
 
 
 @dataclass(frozen=True)
@@ -60,6 +75,7 @@ class Frame:
     stamp_ns: int
     frame_id: str
     received: float = field(default_factory=time.monotonic)
+    seq: int = 0  # arrival number (set by QueryRuntime.on_frame)
 
     @property
     def key(self) -> str:
@@ -76,23 +92,7 @@ class QueryOutcome:
     started: float = 0.0
     finished: float = 0.0
     timings_ms: dict[str, float] = field(default_factory=dict)
-
-
-class RelocalizeTicket:
-    """A pending relocalization; callers may wait for its outcome (bounded)."""
-
-    def __init__(self) -> None:
-        self.requested = time.monotonic()
-        self._done = threading.Event()
-        self.outcome: QueryOutcome | None = None
-
-    def finish(self, outcome: QueryOutcome | None) -> None:
-        self.outcome = outcome
-        self._done.set()
-
-    def wait(self, timeout_s: float) -> QueryOutcome | None:
-        self._done.wait(max(0.0, timeout_s))
-        return self.outcome
+    rgb: np.ndarray | None = field(default=None, repr=False)  # kept when keep_images is set
 
 
 class QueryRuntime:
@@ -103,8 +103,12 @@ class QueryRuntime:
                  on_outcome: Callable[[QueryOutcome], None],
                  encoded: Callable[[Any], bytes | None] | None = None,
                  clock: Callable[[], float] = time.monotonic,
-                 stats: RuntimeStats | None = None, max_waiters: int = 2) -> None:
+                 stats: RuntimeStats | None = None, max_waiters: int = MAX_WAITERS) -> None:
         self.pipeline, self.provider, self.config = pipeline, provider, config
+        self.localizer_config: LocalizerConfig = pipeline.localizer.config
+        #: verification settings tuned at runtime (status policy, verify_top_k); None: as opened
+        self.verification: tuple[Any, int | None] | None = None
+        self.keep_images = False  # hand the decoded frame to on_outcome (debug view)
         self._waiters = threading.BoundedSemaphore(max(1, max_waiters))
         self._decode, self._encoded, self._on_outcome = decode, encoded, on_outcome
         self._clock = clock
@@ -112,7 +116,11 @@ class QueryRuntime:
         self._cond = threading.Condition()
         self._slot: Frame | None = None
         self._last_used: Frame | None = None
-        self._ticket: RelocalizeTicket | None = None
+        self._seq = 0
+        self._tickets: dict[RelocalizeKind, RelocalizeTicket] = {}
+        #: the running query: (frame, prior asked, the requests it answers); requests for the
+        #: latest frame join it while its frame is fresh enough for them
+        self._inflight: tuple[Frame, bool, dict[RelocalizeKind, RelocalizeTicket]] | None = None
         self._last_start = -float("inf")
         self._stop = False
         self.busy = False
@@ -125,19 +133,54 @@ class QueryRuntime:
         """Store ``frame`` as the latest one (O(1); never decodes, never blocks on a query)."""
         frame.received = self._clock()
         with self._cond:
+            self._seq += 1
+            frame.seq = self._seq
             dropped = self._slot is not None
             self._slot = frame
             self.stats.frame_received(dropped)
             self._cond.notify_all()
 
-    def request_relocalize(self) -> RelocalizeTicket:
-        """Force a query on the latest fresh frame (or the next one); coalesces requests."""
+    def request_relocalize(self, kind: RelocalizeKind = RelocalizeKind()) -> RelocalizeTicket:
+        """Force a query (ignoring ``min_period_s``, in both modes) on the frame ``kind`` asks
+        for; requests of one kind made while one is pending share it."""
         with self._cond:
             self.stats.count("relocalize_requests")
-            if self._ticket is None:
-                self._ticket = RelocalizeTicket()
+            ticket = self._tickets.get(kind) or self._join_inflight(kind)
+            if ticket is None:
+                ticket = self._tickets[kind] = RelocalizeTicket(kind, self._seq)
             self._cond.notify_all()
-            return self._ticket
+            return ticket
+
+    def _join_inflight(self, kind: RelocalizeKind) -> RelocalizeTicket | None:
+        """The running query's ticket for a ``latest`` request it can answer (its frame was
+        fresh when the query started and the prior setting matches), so a caller arriving
+        during a slow VLM call shares that call instead of queueing another; None otherwise
+        (caller holds the lock). A ``next`` request never joins: the running query's frame
+        predates it."""
+        if self._inflight is None or kind.frame != "latest":
+            return None
+        frame, use_prior, served = self._inflight
+        ticket = RelocalizeTicket(kind, self._seq)
+        if use_prior != kind.use_prior or not ticket.accepts(frame, self._last_start,
+                                                             self.config.max_frame_age_s):
+            return None
+        return served.setdefault(kind, ticket)
+
+    def update(self, config: RuntimeConfig | None = None,
+               localizer: LocalizerConfig | None = None, status: Any = None,
+               verify_top_k: int | None = None) -> None:
+        """New settings from the next query on (runtime tuning); a running query keeps its
+        own. ``localizer``: per-query settings only (top_p, fusion, submaps, rerank);
+        ``status`` (a StatusPolicy) and ``verify_top_k``: verification (docs/verification.md)."""
+        with self._cond:
+            if status is not None or verify_top_k is not None:
+                self.verification = (status, verify_top_k)
+            if config is not None:
+                self.config = config
+                self.stats.mode = config.mode
+            if localizer is not None:
+                self.localizer_config = localizer
+            self._cond.notify_all()  # a shorter min_period_s applies to the current wait
 
     def reload_map(self) -> tuple[bool, str]:
         """Re-read the map from disk and swap it in between two queries (the running query
@@ -163,26 +206,27 @@ class QueryRuntime:
             log.info("%s", msg)
             return True, msg
 
-    def relocalize(self, wait_s: float, fix_topic: str = "fix") -> tuple[bool, str]:
+    def relocalize(self, wait_s: float, fix_topic: str = "fix",
+                   kind: RelocalizeKind = RelocalizeKind()) -> tuple[bool, str]:
         """Answer one relocalize call: (success, sentence) within ``wait_s`` at most.
 
-        Every call joins the one pending request (concurrent calls share one query). At most
-        ``max_waiters`` calls wait for its outcome at a time (each holds an executor thread);
-        the others are answered at once that the shared relocalization is scheduled, so a burst
-        of calls never starves the executor and every call gets an answer."""
+        Every call joins the pending request of its kind (concurrent calls share one query)
+        and waits for that shared outcome. Each waiting call holds an executor thread, so at
+        most ``max_waiters`` wait at once; a call beyond that is answered at once that the
+        shared relocalization is scheduled (never refused)."""
         t0 = time.monotonic()
-        ticket = self.request_relocalize()
+        ticket = self.request_relocalize(kind)
         if wait_s <= 0:
-            return True, ("relocalization scheduled on the latest or next frame; the fix will "
-                          f"be published on {fix_topic}")
+            return True, (f"relocalization scheduled ({kind.label}); the fix will be "
+                          f"published on {fix_topic}")
         if not self._waiters.acquire(blocking=False):
-            return False, ("busy: a relocalization is already scheduled and shared by the "
-                           f"pending requests; its fix will be published on {fix_topic}")
+            return False, (f"relocalization scheduled ({kind.label}), shared with the callers "
+                           f"already waiting for it; the fix will be published on {fix_topic}")
         try:
             outcome = ticket.wait(wait_s)
         finally:
             self._waiters.release()
-        return outcome_summary(outcome, time.monotonic() - t0)
+        return outcome_summary(outcome, time.monotonic() - t0, fix_topic)
 
     # -- lifecycle -----
     def start(self) -> None:
@@ -191,9 +235,9 @@ class QueryRuntime:
     def stop(self, timeout_s: float = 5.0, close_provider: bool = True) -> None:
         with self._cond:
             self._stop = True
-            ticket, self._ticket = self._ticket, None
+            tickets, self._tickets = list(self._tickets.values()), {}
             self._cond.notify_all()
-        if ticket is not None:
+        for ticket in tickets:
             ticket.finish(None)
         if self._thread.is_alive():
             self._thread.join(timeout_s)
@@ -204,32 +248,47 @@ class QueryRuntime:
     def _fresh(self, frame: Frame | None, now: float) -> bool:
         return frame is not None and now - frame.received <= self.config.max_frame_age_s
 
-    def _next_job(self) -> tuple[Frame, RelocalizeTicket | None] | None:
+    def _relocalize_job(self, now: float) -> tuple[Frame, list[RelocalizeTicket]] | None:
+        """The frame for the oldest pending request and every pending request of the same
+        prior setting that this frame also answers; None: wait for a frame (caller holds
+        the lock)."""
+        age = self.config.max_frame_age_s
+        first = min(self._tickets.values(), key=lambda t: t.requested)
+        frame = None
+        if first.accepts(self._slot, now, age):
+            frame, self._slot = self._slot, None
+        elif self._slot is None and first.accepts(self._last_used, now, age):
+            frame = self._last_used
+        if frame is None:
+            if self._slot is not None and not any(t.accepts(self._slot, now, age)
+                                                  for t in self._tickets.values()):
+                self._slot = None  # stale, or older than the request: wait for the next one
+                self.stats.count("frames_dropped")
+            return None
+        served = [t for t in self._tickets.values() if t.kind.use_prior == first.kind.use_prior
+                  and t.accepts(frame, now, age)]
+        for t in served:
+            del self._tickets[t.kind]
+        return frame, served
+
+    def _next_job(self) -> tuple[Frame, list[RelocalizeTicket]] | None:
         """Block until a query is due; None when stopping."""
         with self._cond:
             while not self._stop:
                 now = self._clock()
                 if now < self._last_start:  # the clock jumped back (bag loop, sim reset)
                     self._last_start = -float("inf")
-                if self._ticket is not None:
-                    frame = None
-                    if self._fresh(self._slot, now):
-                        frame, self._slot = self._slot, None
-                    elif self._slot is None and self._fresh(self._last_used, now):
-                        frame = self._last_used
-                    if frame is not None:
-                        ticket, self._ticket = self._ticket, None
-                        return frame, ticket
-                    if self._slot is not None:  # stale frame: wait for the next one
-                        self._slot = None
-                        self.stats.count("frames_dropped")
+                if self._tickets:
+                    job = self._relocalize_job(now)
+                    if job is not None:
+                        return job
                     self._cond.wait(0.5)
                     continue
                 if self.config.mode == "continuous" and self._slot is not None:
                     wait = self._last_start + self.config.min_period_s - now
                     if wait <= 0:
                         frame, self._slot = self._slot, None
-                        return frame, None
+                        return frame, []
                     self._cond.wait(min(wait, 0.1))  # the clock may be sim time
                     continue
                 self._cond.wait(0.5)
@@ -240,20 +299,27 @@ class QueryRuntime:
             job = self._next_job()
             if job is None:
                 return
-            frame, ticket = job
-            self._last_start = self._clock()
+            frame, tickets = job
+            use_prior = all(t.kind.use_prior for t in tickets)
+            with self._cond:
+                self._last_start = self._clock()
+                self._inflight = (frame, use_prior, {t.kind: t for t in tickets})
             self.busy = True
-            outcome = QueryOutcome(frame, "relocalize" if ticket else "continuous")
+            outcome = QueryOutcome(frame, "relocalize" if tickets else "continuous")
             try:
-                self._process(outcome)
+                self._process(outcome, use_prior)
             except Exception as exc:  # noqa: BLE001 - the worker must outlive any bad query
                 log.exception("query on frame %s failed", frame.key)
                 outcome.error = f"{type(exc).__name__}: {exc}"
             outcome.finished = time.monotonic()
             self._last_used = frame
+            with self._cond:  # requests from now on wait for the next query
+                tickets, self._inflight = list(self._inflight[2].values()), None
+            if tickets:
+                outcome.trigger = "relocalize"
             if self._stop:  # shutting down: the query was cut short, publish nothing
                 self.busy = False
-                if ticket is not None:
+                for ticket in tickets:
                     ticket.finish(None)
                 return
             self.stats.record(outcome.hypothesis, outcome.error, outcome.timings_ms)
@@ -262,10 +328,10 @@ class QueryRuntime:
             except Exception:  # noqa: BLE001 - a publishing failure must not stop the worker
                 log.exception("publishing the outcome of frame %s failed", frame.key)
             self.busy = False
-            if ticket is not None:  # after publishing: the fix is out when the caller hears
+            for ticket in tickets:  # after publishing: the fix is out when the caller hears
                 ticket.finish(outcome)
 
-    def _process(self, out: QueryOutcome) -> None:
+    def _process(self, out: QueryOutcome, use_prior: bool = True) -> None:
         t0 = out.started = time.monotonic()
         frame = out.frame
         try:
@@ -278,21 +344,34 @@ class QueryRuntime:
                             self.stats.snapshot()["decode_errors"], exc)
             return
         self.stats.count("frames_processed")
+        if self.keep_images:
+            out.rgb = rgb
         t1 = time.monotonic()
-        encoded = self._encoded(frame.msg) if self._encoded else None
-        future = self._request_prior(PriorQuery(image=rgb, encoded=encoded, key=frame.key))
-        pipe = self.pipeline  # one map for the whole query, even if reload_map() swaps it now
+        future = None
+        if use_prior:
+            encoded = self._encoded(frame.msg) if self._encoded else None
+            future = self._request_prior(PriorQuery(image=rgb, encoded=encoded, key=frame.key))
+        with self._cond:  # one map and one set of settings for the whole query
+            pipe, settings, verification = self.pipeline, self.localizer_config, \
+                self.verification
+        tuned = {k: getattr(settings, k) for k in TUNABLE_LOCALIZER}
+        if any(getattr(pipe.localizer.config, k) != v for k, v in tuned.items()):
+            # tuned at runtime: the worker is the localizer's only user between queries
+            pipe.localizer.config = dataclasses.replace(pipe.localizer.config, **tuned)
+        if verification is not None:
+            pipe.tune(*verification)
         try:
-            desc = pipe.describe(rgb)
+            query = pipe.describe_query(rgb)  # + local features for verification
         except VlmVprError as exc:
-            future.cancel()
+            if future is not None:
+                future.cancel()
             out.error = f"descriptor failed: {exc}"
             return
         t2 = time.monotonic()
-        prior = self._await_prior(future, t1)
+        prior = self._await_prior(future, t1) if future is not None else None
         t3 = time.monotonic()
         try:
-            hyp = pipe.localize_descriptor(desc, prior)
+            hyp = pipe.localize_descriptor(query.desc, prior, query.local)
         except VlmVprError as exc:  # e.g. a map file truncated after start (maps/store.py)
             out.error = f"localization failed: {exc}"
             return
@@ -300,7 +379,8 @@ class QueryRuntime:
         out.hypothesis = hyp
         out.timings_ms = {
             "decode_ms": (t1 - t0) * 1e3, "descriptor_ms": (t2 - t1) * 1e3,
-            "prior_wait_ms": (t3 - t2) * 1e3, "prior_latency_ms": prior.latency_s * 1e3,
+            "prior_wait_ms": (t3 - t2) * 1e3,
+            "prior_latency_ms": prior.latency_s * 1e3 if prior is not None else 0.0,
             **hyp.timings_ms, "query_ms": (t4 - t0) * 1e3,
         }
 
@@ -333,24 +413,3 @@ class QueryRuntime:
                                        f"{type(result).__name__}")
         return result
 
-
-def outcome_summary(outcome: QueryOutcome | None, waited_s: float) -> tuple[bool, str]:
-    """(success, human-readable sentence) answering a relocalize request."""
-    if outcome is None:
-        return False, (f"relocalization scheduled, no result within {waited_s:.1f} s (waiting "
-                       "for a frame or for the prior); the fix will be published on 'fix'")
-    frame = outcome.frame
-    if outcome.hypothesis is None:
-        return False, f"relocalization on frame {frame.key} gave no fix: {outcome.error}"
-    h = outcome.hypothesis
-    pr = h.prior_result
-    if h.prior is not None:
-        prior = f"prior {h.prior.source} ({h.prior.lat:.4f}, {h.prior.lon:.4f})"
-    else:
-        prior = f"no prior ({pr.reason if pr else 'none'}): global retrieval"
-    flag = f" FLAGGED [{'|'.join(h.flags)}]" if h.flagged else ""
-    took = outcome.finished - outcome.started
-    what = "relocalized frame" if outcome.trigger == "relocalize" else "fix for frame"
-    return True, (f"{what} {frame.key}: lat {h.lat:.6f}, lon {h.lon:.6f}, "
-                  f"sigma {h.uncertainty_m:.0f} m, reference {h.ref_id}, submap {h.submap}, "
-                  f"{prior}, {len(h.candidates)} candidates, {took:.2f} s{flag}")

@@ -30,8 +30,9 @@ from vlm_vpr_ros.files.atomic import atomic_path, commit_temp, file_sha256
 
 log = logging.getLogger(__name__)
 
-#: checkpoint containers that wrap the state_dict (PyTorch Lightning ``.ckpt``)
-_WRAPPER_KEYS = ("state_dict",)
+#: checkpoint containers that wrap the state_dict (PyTorch Lightning ``.ckpt``; the official
+#: DISK release, read by the verification stage)
+_WRAPPER_KEYS = ("state_dict", "extractor")
 _MAX_LISTED = 8
 
 

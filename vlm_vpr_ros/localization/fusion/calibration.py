@@ -23,7 +23,6 @@ All of it is ONE optional file in the map folder, ``calibration.json``, listed i
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 from pathlib import Path
@@ -32,10 +31,9 @@ from typing import Any, Mapping
 import numpy as np
 
 from vlm_vpr_ros.errors import MapError
-from vlm_vpr_ros.files.atomic import atomic_write_json
 from vlm_vpr_ros.localization.fusion.error_model import ErrorModel
 from vlm_vpr_ros.localization.fusion.posterior import fuse
-from vlm_vpr_ros.maps.format import MANIFEST, checked_file, file_table
+from vlm_vpr_ros.maps.documents import load_document, save_document
 from vlm_vpr_ros.geodesy import EARTH_RADIUS_KM, haversine_km, latlon_to_unit
 
 log = logging.getLogger(__name__)
@@ -50,14 +48,21 @@ MAX_LOO_REFERENCES = 200_000  # above this, only the visual scale is computed (f
 DUPLICATE_SQ = 1e-4
 
 
+#: least conformal factor: when most leave-one-out answers are exact (several references at
+#: one position, e.g. the views of one panorama), the quantile is 0; radii are floored anyway
+#: (``uncertainty_floor_m``), and a factor of 0 would make the calibration file invalid
+MIN_FACTOR = 1e-3
+
+
 def conformal_factor(ratios: np.ndarray, q: float) -> float:
-    """Finite-sample split-conformal quantile: the ceil((n+1) q)-th smallest ratio."""
+    """Finite-sample split-conformal quantile: the ceil((n+1) q)-th smallest ratio (at least
+    :data:`MIN_FACTOR`)."""
     r = np.sort(np.asarray(ratios, dtype=np.float64))
     n = len(r)
     if n == 0:
         return 1.0
     k = min(n, int(math.ceil((n + 1) * q)))
-    return float(r[k - 1])
+    return max(float(r[k - 1]), MIN_FACTOR)
 
 
 def _sample_prior(lat: float, lon: float, model: ErrorModel,
@@ -200,32 +205,12 @@ def validate_calibration(doc: Any, where: str) -> dict[str, Any]:
 
 def load_calibration(ref_map: Any) -> dict[str, Any] | None:
     """The map's calibration.json (validated, checksum-checked) or None for maps without it."""
-    rel = ref_map.manifest.get("calibration")
-    if not rel or ref_map.path is None:
-        return None
-    if rel not in ref_map.manifest.get("files", {}):  # a later rewrite of the map dropped it
-        log.warning("%s: %s is no longer listed in the manifest; radii are uncalibrated",
-                    ref_map.path, rel)
-        return None
-    p = checked_file(Path(ref_map.path), ref_map.manifest, rel, True)
-    try:
-        doc = json.loads(p.read_text(encoding="utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise MapError(f"{p}: corrupt calibration ({exc})") from None
-    return validate_calibration(doc, str(p))
+    doc = load_document(ref_map, "calibration", "radius calibration")
+    return None if doc is None else validate_calibration(
+        doc, f"{ref_map.path}/{ref_map.manifest['calibration']}")
 
 
 def save_calibration(ref_map: Any, doc: Mapping[str, Any]) -> Path:
     """Write ``calibration.json`` into a saved map and list it in the manifest (manifest last)."""
-    if ref_map.path is None:
-        raise MapError("save the map before writing its calibration")
-    path = Path(ref_map.path)
     validate_calibration(dict(doc), CALIBRATION_FILE)
-    atomic_write_json(path / CALIBRATION_FILE, dict(doc))
-    manifest = dict(ref_map.manifest)
-    files = dict(manifest.get("files", {}))
-    files.update(file_table(path, [CALIBRATION_FILE]))
-    manifest["files"], manifest["calibration"] = files, CALIBRATION_FILE
-    atomic_write_json(path / MANIFEST, manifest)
-    ref_map.manifest = manifest
-    return path / CALIBRATION_FILE
+    return save_document(ref_map, "calibration", CALIBRATION_FILE, doc, "calibration")

@@ -1,0 +1,39 @@
+"""Debug outputs: ``sensor_msgs/CompressedImage`` (JPEG) and the candidate list as a
+``diagnostic_msgs/DiagnosticArray`` (one status per candidate, best first: a typed message that
+``ros2 topic echo`` and Foxglove show without a custom message package). Message classes are
+imported inside the functions."""
+
+from __future__ import annotations
+
+from typing import Any, Mapping, Sequence
+
+
+def _stamp(header: Any, stamp_ns: int) -> None:
+    header.stamp.sec = int(stamp_ns) // 1_000_000_000
+    header.stamp.nanosec = int(stamp_ns) % 1_000_000_000
+
+
+def compressed_jpeg(data: bytes, stamp_ns: int, frame_id: str) -> Any:
+    """A ``CompressedImage`` (format ``jpeg``) holding ``data``."""
+    from sensor_msgs.msg import CompressedImage
+
+    msg = CompressedImage(format="jpeg", data=bytes(data))
+    _stamp(msg.header, stamp_ns)
+    msg.header.frame_id = frame_id
+    return msg
+
+
+def candidates_array(stamp_ns: int, name: str, hardware_id: str,
+                     rows: Sequence[Mapping[str, str]]) -> Any:
+    """A ``DiagnosticArray`` with one OK status per candidate row (name ``<name> <rank>``,
+    message = reference id, values = the row)."""
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
+    arr = DiagnosticArray()
+    _stamp(arr.header, stamp_ns)
+    for row in rows:
+        st = DiagnosticStatus(level=DiagnosticStatus.OK, name=f"{name} {row.get('rank', '')}",
+                              hardware_id=hardware_id, message=str(row.get("ref_id", "")))
+        st.values = [KeyValue(key=str(k), value=str(v)) for k, v in row.items()]
+        arr.status.append(st)
+    return arr

@@ -1,0 +1,85 @@
+"""The debug view (pure): reference lookup, the side-by-side picture with matches, the
+candidate rows; the runtime keeps decoded frames only when asked (no work without it)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from test_node_runtime import frame_of, image, make, msg_of, pipeline  # noqa: F401
+from vlm_vpr_ros.priors import create_prior_provider
+from vlm_vpr_ros.runtime import debug_view
+from vlm_vpr_ros.types import Candidate, Hypothesis
+
+QUERY = "546314506564628.jpg"
+
+
+def _hyp(ref_id: str = QUERY) -> Hypothesis:
+    cands = [Candidate(ref_id, 39.5, 8.8, 0.25, "k1", prior_km=1.5, posterior=0.75),
+             Candidate("other.jpg", 39.6, 8.9, 0.5, "k2", posterior=0.25)]
+    return Hypothesis(39.5, 8.8, ref_id, "k1", 30.0, candidates=cands)
+
+
+def test_reference_images_are_found_scaled_and_confined(demo_data, tmp_path):
+    refs = debug_view.ReferenceImages(demo_data / "images")
+    thumb, scale = refs.load(QUERY)
+    assert thumb.shape[0] == debug_view.PANEL_HEIGHT and thumb.dtype == np.uint8
+    assert refs.load(QUERY)[0] is thumb  # cached
+    assert refs.load("../osv5m_demo/images/" + QUERY) is None  # no way out of the folder
+    assert refs.load("/etc/passwd") is None and refs.load("missing.jpg") is None
+    assert debug_view.ReferenceImages(None).load(QUERY) is None
+    # a teach map keeps its pictures: MAP/<manifest images.folder>
+    own = debug_view.ReferenceImages.for_map(tmp_path, {"images": {"folder": "images"}})
+    assert own.folder == tmp_path / "images"
+    assert debug_view.ReferenceImages.for_map(tmp_path, {}, str(demo_data)).folder == demo_data
+    assert debug_view.ReferenceImages.for_map(tmp_path, {}).folder is None
+
+
+def test_render_puts_query_beside_reference_and_draws_matches(demo_data):
+    refs = debug_view.ReferenceImages(demo_data / "images")
+    query = np.full((480, 640, 3), 200, np.uint8)
+    ref = refs.load(QUERY)
+    plain = debug_view.render(query, ref, ["line one", "line two"], "reference x")
+    h = debug_view.PANEL_HEIGHT
+    assert plain.shape == (h + debug_view.CAPTION_HEIGHT, 480 + ref[0].shape[1], 3)
+    assert (plain[h // 2:h - 20, 100:400] == 200).all()  # the (uniform) query, scaled
+    # one match from the query's centre to the reference's top-left quarter: a green line
+    rh, rw = (np.array(ref[0].shape[:2]) / ref[1]).astype(int)
+    m = np.array([[320.0, 240.0, rw / 4, rh / 4]])
+    drawn = debug_view.render(query, ref, ["a", "b"], "reference x", matches=m)
+    diff = np.any(drawn != plain, axis=2)
+    ys, xs = np.nonzero(diff[:h])
+    assert len(xs) > 100 and xs.min() <= 245 and xs.max() >= 480 + ref[0].shape[1] // 4 - 3
+    assert (drawn[ys, xs, 1] > drawn[ys, xs, 0]).mean() > 0.8  # green
+    missing = debug_view.render(query, None, ["a", "b"])
+    assert missing.shape[1] == 2 * 480  # a placeholder as wide as the query panel
+    jpeg = debug_view.jpeg(drawn)
+    assert jpeg[:2] == b"\xff\xd8"
+
+
+def test_candidate_rows_and_caption():
+    hyp = _hyp()
+    rows = debug_view.candidate_rows(hyp)
+    assert [r["rank"] for r in rows] == ["1", "2"] and rows[0]["ref_id"] == QUERY
+    assert rows[0]["posterior"] == "0.7500" and rows[0]["prior_km"] == "1.5"
+    assert rows[1]["prior_km"] == "" and rows[0]["inliers"] == ""  # not computed
+    assert len(debug_view.candidate_rows(hyp, limit=1)) == 1
+    top, second = debug_view.caption(hyp, "STATUS_FIX", 30.0)
+    assert top.startswith("STATUS_FIX sigma 30 m") and "posterior 0.75" in top
+    assert "no prior" in second and "2 candidates" in second
+    assert debug_view.caption(None, "", 0.0, "descriptor failed: x")[0] == \
+        "no fix: descriptor failed: x"
+
+
+@pytest.mark.parametrize("keep", [False, True])
+def test_the_runtime_keeps_decoded_frames_only_for_the_debug_view(pipeline, image, keep):
+    rt, col = make(pipeline, create_prior_provider("none"), mode="on_trigger")
+    rt.keep_images = keep
+    try:
+        rt.on_frame(frame_of(msg_of(image), 5))
+        out = rt.request_relocalize().wait(20)
+    finally:
+        rt.stop()
+    assert out is not None and (out.rgb is not None) == keep
+    if keep:
+        assert out.rgb.shape == image.shape

@@ -1,0 +1,130 @@
+"""The pure runtime's relocalization requests and runtime tuning (no ROS): callers share the
+running query, the next-frame and no-prior kinds, bounded waiting, settings from the next
+query on."""
+
+from __future__ import annotations
+
+import dataclasses
+import threading
+import time
+
+import pytest
+
+from test_node_runtime import (SlowPrior, frame_of, image, make, msg_of,  # noqa: F401
+                               pipeline)
+from vlm_vpr_ros.priors import create_prior_provider
+from vlm_vpr_ros.runtime.worker import QueryRuntime, RelocalizeKind, RuntimeConfig
+
+pytestmark = pytest.mark.timeout(60)
+
+
+def _wait_until(pred, timeout_s: float = 20.0) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if pred():
+            return True
+        time.sleep(0.02)
+    return False
+
+
+def test_callers_during_a_slow_prior_share_the_running_query(pipeline, image):
+    prov = SlowPrior(1.5)
+    rt, col = make(pipeline, prov, mode="on_trigger", max_frame_age_s=10.0)
+    answers: list[tuple[bool, str]] = []
+
+    def call():
+        answers.append(rt.relocalize(20.0))
+    try:
+        rt.on_frame(frame_of(msg_of(image), 7_000_000_001))
+        first = threading.Thread(target=call)
+        first.start()
+        assert _wait_until(lambda: len(prov.queries) == 1)  # the VLM call is running
+        late = [threading.Thread(target=call) for _ in range(9)]
+        for t in late:
+            t.start()
+        for t in [first, *late]:
+            t.join(20.0)
+    finally:
+        rt.stop()
+        prov.close()
+    assert len(answers) == 10 and len(prov.queries) == 1 and len(col.outcomes) == 1
+    assert all(ok for ok, _ in answers) and len({text for _, text in answers}) == 1
+    assert answers[0][1].startswith("relocalized frame 7.000000001:")
+    assert not any("busy" in text for _, text in answers)
+    assert rt.stats.snapshot()["relocalize_requests"] == 10
+
+
+def test_next_frame_request_waits_for_a_new_frame_and_never_joins(pipeline, image):
+    prov = SlowPrior(1.0)
+    rt, col = make(pipeline, prov, mode="on_trigger", max_frame_age_s=10.0)
+    try:
+        rt.on_frame(frame_of(msg_of(image), 1))
+        latest = rt.request_relocalize()
+        assert _wait_until(lambda: len(prov.queries) == 1)
+        nxt = rt.request_relocalize(RelocalizeKind("next"))  # made during the running query
+        assert latest.wait(20).frame.stamp_ns == 1
+        assert nxt.wait(0.5) is None  # frame 1 predates the request: no answer from it
+        rt.on_frame(frame_of(msg_of(image), 2))
+        out = nxt.wait(20)
+        assert out is not None and out.frame.stamp_ns == 2 and out.trigger == "relocalize"
+    finally:
+        rt.stop()
+        prov.close()
+    assert len(prov.queries) == 2
+
+
+def test_no_prior_request_skips_the_provider(pipeline, image):
+    prov = SlowPrior(30.0)
+    rt, col = make(pipeline, prov, mode="on_trigger", max_frame_age_s=10.0)
+    try:
+        rt.on_frame(frame_of(msg_of(image), 3))
+        t0 = time.monotonic()
+        ok, text = rt.relocalize(20.0, kind=RelocalizeKind("latest", use_prior=False))
+        took = time.monotonic() - t0
+    finally:
+        rt.stop()
+        prov.close()
+    assert ok and "no prior (not asked): global retrieval" in text, text
+    assert prov.queries == [] and took < 15.0  # the 30 s prior was never asked for
+    hyp = col.outcomes[0].hypothesis
+    assert hyp.prior is None and "no_prior" in hyp.flags
+    assert col.outcomes[0].timings_ms["prior_latency_ms"] == 0.0
+
+
+def test_waiting_is_bounded_and_extra_callers_hear_it_is_scheduled(pipeline, image):
+    col_outcomes = []
+    rt = QueryRuntime(pipeline, create_prior_provider("none"), RuntimeConfig(mode="on_trigger"),
+                      decode=lambda m: image, on_outcome=col_outcomes.append, max_waiters=1)
+    rt.start()
+    try:
+        waiting = threading.Thread(target=rt.relocalize, args=(3.0,))
+        waiting.start()  # no frame: it waits (the only waiter allowed)
+        time.sleep(0.3)
+        ok, text = rt.relocalize(3.0)
+        assert not ok and "scheduled" in text and "shared" in text and "busy" not in text
+        ok0, text0 = rt.relocalize(0.0)
+        assert ok0 and "scheduled (latest frame, with prior)" in text0
+        waiting.join(10.0)
+    finally:
+        rt.stop()
+
+
+def test_settings_change_from_the_next_query_on(pipeline, image):
+    rt, col = make(pipeline, create_prior_provider("fixed", {"lat": 39.6, "lon": 8.9}),
+                   mode="on_trigger", max_frame_age_s=10.0)
+    try:
+        rt.on_frame(frame_of(msg_of(image), 11))
+        first = rt.request_relocalize().wait(20)
+        rt.update(localizer=dataclasses.replace(rt.localizer_config, top_p=7, rerank=False))
+        second = rt.request_relocalize().wait(20)
+        assert len(first.hypothesis.candidates) > 7 and len(second.hypothesis.candidates) == 7
+        assert rt.pipeline.localizer.config.top_p == 7 and not rt.pipeline.localizer.config.rerank
+        # on_trigger -> continuous at runtime: frames alone now start queries
+        rt.update(RuntimeConfig(mode="continuous", min_period_s=0.0, max_frame_age_s=10.0))
+        assert rt.stats.mode == "continuous"
+        n = len(col.outcomes)
+        rt.on_frame(frame_of(msg_of(image), 12))
+        assert _wait_until(lambda: len(col.outcomes) > n)
+        assert col.outcomes[-1].trigger == "continuous"
+    finally:
+        rt.stop()

@@ -1,0 +1,166 @@
+"""The demo's look-alike step: a map where every place has a look-alike far away.
+
+Built from the shipped images, and said so in the demo's output: for each of the 71 places,
+four independent mild copies of its one image (an 85-95 % crop resized back, a small brightness
+and contrast change, JPEG) — two at the place (the second :data:`SECOND_PHOTO_M` north of the
+first, as two photos of a mapped route) and two at a look-alike place :data:`LOOKALIKE_KM` away
+in a random, seeded direction. To the descriptor the true place and its look-alike are the same
+kind of copy, so VPR alone picks either with about equal odds; a prior that is closer to the
+true place than to the look-alike can tell them apart. This is the situation the method is for
+(similar streets, buildings and chains in many cities), shrunk to a 284-reference map.
+
+The references are written as images with a coordinates CSV (``refs/``, ``refs.csv``), described
+with the demo map's fitted descriptor and assembled into a map folder with its fusion
+calibration, exactly as ``build-map`` finishes a map.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from vlm_vpr_ros.files.images import load_image
+from vlm_vpr_ros.geodesy import destination
+
+log = logging.getLogger(__name__)
+
+#: distance between a place and its look-alike (km)
+LOOKALIKE_KM = 5000.0
+#: the second photo of a place (and of its look-alike) lies this far north of the first (m)
+SECOND_PHOTO_M = 10.0
+#: sub-folders of ``refs/``: two photos at the place, two at the look-alike place
+COPIES = (("place", 0), ("place", 1), ("lookalike", 0), ("lookalike", 1))
+
+
+@dataclass(frozen=True)
+class LookalikeRef:
+    id: str  # path under refs/, e.g. "place1/123.jpg"
+    source: str  # the shipped image it is a copy of
+    lat: float
+    lon: float
+    lookalike: bool  # True: at the look-alike place, not where the photo was taken
+
+
+def mild_copy(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Another photo of the same view: 85-95 % crop resized to 640x480, brightness and
+    contrast within a few percent."""
+    h, w = image.shape[:2]
+    s = rng.uniform(0.85, 0.95)
+    ch, cw = int(h * s), int(w * s)
+    y0, x0 = rng.integers(0, h - ch + 1), rng.integers(0, w - cw + 1)
+    crop = cv2.resize(image[y0:y0 + ch, x0:x0 + cw], (640, 480), interpolation=cv2.INTER_AREA)
+    x = crop.astype(np.float32) / 255.0
+    x = np.clip(x * rng.uniform(0.85, 1.1) + rng.uniform(-0.04, 0.04), 0, 1)
+    return (x * 255).round().astype(np.uint8)
+
+
+def lookalike_refs(places: list[tuple[str, float, float]], seed: int = 0) -> list[LookalikeRef]:
+    """The 4 references of every place (ids, coordinates), in a fixed order."""
+    rng = np.random.default_rng([seed, 1])
+    out = []
+    north_deg = SECOND_PHOTO_M / 1000.0 / 6371.0088 * 180.0 / np.pi
+    for f, lat, lon in places:
+        twin = destination(lat, lon, LOOKALIKE_KM, float(rng.uniform(0.0, 360.0)))
+        for where, k in COPIES:
+            la, lo = twin if where == "lookalike" else (lat, lon)
+            out.append(LookalikeRef(f"{where}{k + 1}/{f}", f, la + k * north_deg, lo,
+                                    where == "lookalike"))
+    return out
+
+
+def write_refs(images_dir: Path, places: list[tuple[str, float, float]], out: Path,
+               seed: int = 0) -> list[LookalikeRef]:
+    """Write ``out/refs/<copy>/<file>`` (JPEG) and ``out/refs.csv`` (file, lat, lon)."""
+    from vlm_vpr_ros.files.atomic import atomic_write_bytes
+    from vlm_vpr_ros.files.csvio import write_csv_atomic
+
+    refs = lookalike_refs(places, seed)
+    for i, ref in enumerate(refs):
+        if i % len(COPIES) == 0:
+            image = load_image(images_dir / ref.source)
+        copy = mild_copy(image, np.random.default_rng([seed, 2, i]))
+        ok, data = cv2.imencode(".jpg", cv2.cvtColor(copy, cv2.COLOR_RGB2BGR),
+                                [cv2.IMWRITE_JPEG_QUALITY, 90])
+        (out / "refs" / ref.id).parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_bytes(out / "refs" / ref.id, data.tobytes())
+    write_csv_atomic(out / "refs.csv", ["file", "lat", "lon"],
+                     [{"file": r.id, "lat": r.lat, "lon": r.lon} for r in refs])
+    return refs
+
+
+def build_lookalike_map(pipe, refs: list[LookalikeRef], refs_dir: Path, map_dir: Path):
+    """Describe the references with ``pipe``'s descriptor and write the map (country submaps,
+    fusion calibration) to ``map_dir``; returns the opened :class:`ReferenceMap`."""
+    from vlm_vpr_ros.files.outputs import StagedOutput
+    from vlm_vpr_ros.maps.assemble import assemble_map
+    from vlm_vpr_ros.maps.build_images import write_map_calibration
+    from vlm_vpr_ros.maps.reference_map import ReferenceMap
+
+    desc = np.stack([pipe.describe(load_image(refs_dir / r.id)) for r in refs])
+    coords = np.array([(r.lat, r.lon) for r in refs], dtype=np.float64)
+    ref_map = assemble_map(desc, coords, [r.id for r in refs], pipe.map.descriptor_identity,
+                           pipe.map.descriptor_state, "country",
+                           extra={"demo": f"look-alike map: {len(refs)} copies of the shipped "
+                                          f"images, look-alikes {LOOKALIKE_KM:g} km away"})
+    with StagedOutput(map_dir, "map", overwrite=True) as stage:
+        ref_map.save(stage.path)
+        write_map_calibration(ref_map, desc, coords)
+        stage.commit(validate=ReferenceMap.load)
+    return ReferenceMap.load(map_dir)
+
+
+def _caption(ref_id: str, err_km: float | None) -> tuple[str, bool]:
+    if not ref_id or err_km is None:
+        return "no answer", False
+    where = "look-alike" if ref_id.startswith("lookalike") else "true place"
+    ok = err_km <= 0.025
+    return (f"{where}: {err_km * 1000:.0f} m off" if ok else
+            f"{where}: {err_km:,.0f} km off"), ok
+
+
+def pick_rows(vpr_errs: list, fused_errs: list, n: int = 6) -> list[int]:
+    """Queries for the contact sheet, in file order: VPR wrong and fused right first, then one
+    both got right, then fused wrong (if any), so the sheet shows the failures too."""
+    def ok(e):
+        return e is not None and e <= 0.025
+
+    idx = range(len(vpr_errs))
+    fixed = [i for i in idx if not ok(vpr_errs[i]) and ok(fused_errs[i])]
+    both = [i for i in idx if ok(vpr_errs[i]) and ok(fused_errs[i])]
+    missed = [i for i in idx if not ok(fused_errs[i])]
+    pick = fixed[:n - 3] + both[:1] + missed[:2]
+    rest = [i for i in fixed + both if i not in pick]
+    return sorted(pick + rest[:n - len(pick)])
+
+
+def contact_sheet(out: Path, files: list[str], vpr: dict, fused: dict, prior: dict,
+                  path: Path) -> Path:
+    """Queries of the look-alike step beside the reference VPR alone matched and the one the
+    fused answer chose (``vpr``/``fused``/``prior``: the demo's per-run extras)."""
+    from vlm_vpr_ros.evaluation.plots import SheetCell, plot_contact_sheet
+    from vlm_vpr_ros.files.csvio import read_table
+
+    ref_ids = {name: [r.get("ref_id", "") for r in read_table(e["results_csv"], ("file",),
+                                                               "results CSV")]
+               for name, e in (("vpr", vpr), ("fused", fused))}
+    blank = np.full((480, 640, 3), 235, np.uint8)
+    rows = []
+    for i in pick_rows(vpr["errors_km"], fused["errors_km"]):
+        pe = prior["errors_km"][i]
+        cells = [SheetCell(load_image(out / "queries" / files[i]),
+                           f"query {i + 1}; prior {pe:,.0f} km off" if pe is not None
+                           else f"query {i + 1}; no prior")]
+        for name, extra in (("vpr", vpr), ("fused", fused)):
+            rid = ref_ids[name][i]
+            text, ok = _caption(rid, extra["errors_km"][i])
+            cells.append(SheetCell(load_image(out / "lookalike" / "refs" / rid) if rid
+                                   else blank, text, ok))
+        rows.append(cells)
+    return plot_contact_sheet(path, rows, ["query", "VPR only: best match",
+                                           "prior+VPR (default): answer"],
+                              title="Look-alike step: the match each method chose (green: "
+                                    "within 25 m, red: wrong)")

@@ -1,0 +1,134 @@
+"""Interfaces of the verification stage: local features, matchers, and their registry.
+
+A *local feature* turns an RGB image into keypoints + descriptors (:class:`LocalFeatures`); a
+*matcher* pairs the features of two images; the geometry check (:mod:`.geometry`) keeps the
+matches consistent with one epipolar geometry. Both are registered by name (hloc style): an
+unknown name is a :class:`~vlm_vpr_ros.errors.ConfigError` listing the choices. Learned ones
+(:mod:`.learned`) register themselves from a module that imports torch only when asked for.
+"""
+
+from __future__ import annotations
+
+import abc
+import importlib
+from dataclasses import dataclass
+from typing import Any, Callable, Mapping, Sequence
+
+import numpy as np
+
+from vlm_vpr_ros.config import choose
+from vlm_vpr_ros.types import LocalFeatures
+
+__all__ = ["Component", "LocalFeatureExtractor", "LocalFeatures", "Matcher", "available_features",
+           "available_matchers", "create_feature", "create_matcher", "register_feature",
+           "register_matcher"]
+
+
+class LocalFeatureExtractor(abc.ABC):
+    """Keypoints and descriptors of RGB uint8 images (H, W, 3)."""
+
+    name: str = ""
+    #: dtype the descriptors are stored in (map feature store, match inputs)
+    descriptor_dtype: np.dtype = np.dtype(np.uint8)
+    descriptor_dim: int = 128
+
+    def __init__(self, config: Mapping[str, Any] | None = None) -> None:
+        self.config: dict[str, Any] = dict(config or {})
+
+    def identity(self) -> dict[str, Any]:
+        """What must agree between features stored in a map and those of a query."""
+        return {"name": self.name, "config": dict(self.config),
+                "descriptor_dim": int(self.descriptor_dim),
+                "dtype": np.dtype(self.descriptor_dtype).name}
+
+    @abc.abstractmethod
+    def extract(self, image: np.ndarray, max_keypoints: int) -> LocalFeatures:
+        """Features of one image, at most ``max_keypoints`` (strongest first)."""
+
+
+class Matcher(abc.ABC):
+    """Tentative correspondences between a query and reference images."""
+
+    name: str = ""
+
+    def __init__(self, config: Mapping[str, Any] | None = None) -> None:
+        self.config: dict[str, Any] = dict(config or {})
+
+    def prepare(self, query: LocalFeatures) -> Any:
+        """Per-query state reused for every candidate (e.g. normalized descriptors)."""
+        return query
+
+    @abc.abstractmethod
+    def match(self, prepared: Any, query: LocalFeatures,
+              ref: LocalFeatures) -> np.ndarray:
+        """(m, 2) int array of (query row, reference row) pairs."""
+
+    def match_many(self, query: LocalFeatures,
+                   refs: Sequence[LocalFeatures]) -> list[np.ndarray]:
+        prepared = self.prepare(query)
+        return [self.match(prepared, query, r) for r in refs]
+
+
+@dataclass(frozen=True)
+class Component:
+    """A registered local feature or matcher: name, factory, default config, one-line doc."""
+
+    name: str
+    factory: Callable[[Mapping[str, Any]], Any]
+    defaults: Mapping[str, Any]
+    summary: str
+
+
+_FEATURES: dict[str, Component] = {}
+_MATCHERS: dict[str, Component] = {}
+#: modules whose import registers components (learned ones need torch + kornia: lazy)
+_PROVIDERS = ("vlm_vpr_ros.localization.verification.sift",
+              "vlm_vpr_ros.localization.verification.learned")
+_loaded = False
+
+
+def register_feature(c: Component) -> Component:
+    _FEATURES[c.name] = c
+    return c
+
+
+def register_matcher(c: Component) -> Component:
+    _MATCHERS[c.name] = c
+    return c
+
+
+def _load() -> None:
+    global _loaded
+    if not _loaded:
+        for mod in _PROVIDERS:
+            importlib.import_module(mod)  # learned.py imports torch only when used
+        _loaded = True
+
+
+def available_features() -> dict[str, Component]:
+    _load()
+    return dict(sorted(_FEATURES.items()))
+
+
+def available_matchers() -> dict[str, Component]:
+    _load()
+    return dict(sorted(_MATCHERS.items()))
+
+
+def create_feature(name: str, config: Mapping[str, Any] | None = None) -> LocalFeatureExtractor:
+    c: Component = choose(name, available_features(), "local feature")
+    return c.factory({**c.defaults, **dict(config or {})})
+
+
+def create_matcher(name: str, config: Mapping[str, Any] | None = None) -> Matcher:
+    c: Component = choose(name, available_matchers(), "matcher")
+    return c.factory({**c.defaults, **dict(config or {})})
+
+
+def one_blas_thread():
+    """Context manager: BLAS on one thread. The products of matching are small (1000 x 1000 x
+    128): on a loaded 2-core machine OpenBLAS' thread team made them 10-40x slower
+    (measured 43 ms vs 1 ms), so verification runs them on the calling thread."""
+    from threadpoolctl import threadpool_limits
+
+    return threadpool_limits(limits=1, user_api="blas")

@@ -1,0 +1,229 @@
+"""What every map builder calls to give a map its local features and its verification
+calibration (images: ``build-map``; bags: ``build-map --bag``; ``map add/remove``; Ray).
+
+* :class:`ReferenceExtractor`: the global descriptor and the local features of reference
+  images, in one SIFT pass for vlad_rootsift maps with the ``sift`` preset.
+* :func:`store_features`: write a saved map's feature files (:mod:`vlm_vpr_ros.maps.features`)
+  from the features of each reference id.
+* :func:`calibrate_map`: the leave-one-out calibration of ``p_correct``
+  (:mod:`.calibration`), written as ``verification.json``.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Any, Callable, Mapping, Sequence
+
+import numpy as np
+
+from vlm_vpr_ros.config import from_mapping
+from vlm_vpr_ros.errors import MapError
+from vlm_vpr_ros.localization.verification.base import (create_feature, create_matcher,
+                                                        one_blas_thread)
+from vlm_vpr_ros.localization.verification.calibration import loo_calibration, save_doc
+from vlm_vpr_ros.localization.verification.evidence import EvidenceConfig
+from vlm_vpr_ros.localization.verification.geometry import GeometryConfig, fundamental_inliers
+from vlm_vpr_ros.localization.verification.presets import VerifierPreset, preset_for_map
+from vlm_vpr_ros.localization.verification.sift import RootSift
+from vlm_vpr_ros.types import LocalFeatures
+
+log = logging.getLogger(__name__)
+#: "none": build a map without local features (answers unverified unless images are given)
+NO_FEATURES = ("none", "")
+#: leave-one-out queries at build time (bounds the build cost: ~20 matches each)
+LOO_QUERIES = 400
+
+
+class ReferenceExtractor:
+    """Global descriptors and local features of reference images (module docstring)."""
+
+    def __init__(self, descriptor: Any, preset: str | None,
+                 feature_options: Mapping[str, Any] | None = None,
+                 matcher_options: Mapping[str, Any] | None = None) -> None:
+        self.descriptor = descriptor
+        self.matcher_options = dict(matcher_options or {})  # for the calibration's matches
+        self.preset: VerifierPreset | None = None
+        self.extractor = None
+        if preset not in NO_FEATURES and preset is not None:
+            self.preset = preset_for_map(preset, descriptor.identity())
+            self.extractor = create_feature(self.preset.feature,
+                                            {**self.preset.feature_config,
+                                             **dict(feature_options or {})})
+        cfg = self.extractor.config if self.extractor is not None else {}
+        vc = getattr(descriptor, "cfg", None)
+        self.shared = (self.preset is not None and self.preset.feature == "sift"
+                       and hasattr(descriptor, "describe_with_sift") and vc is not None
+                       and cfg.get("max_side") == vc.max_side
+                       and cfg.get("contrast_threshold") == 0.04
+                       and cfg.get("edge_threshold") == 10.0)
+
+    @property
+    def enabled(self) -> bool:
+        return self.preset is not None
+
+    def identity(self) -> dict[str, Any]:
+        return self.extractor.identity()
+
+    def describe(self, images: Sequence[np.ndarray]
+                 ) -> tuple[np.ndarray, list[LocalFeatures] | None]:
+        """(n, dim) global descriptors and the local features of each image (None when the
+        map stores none)."""
+        if not self.enabled:
+            return self.descriptor.describe(images), None
+        k = self.preset.max_keypoints
+        if self.shared:
+            out, feats = [], []
+            for im in images:
+                d, (xy, des, resp, scale, size) = self.descriptor.describe_with_sift(im)
+                out.append(d)
+                feats.append(RootSift.from_pass(xy, des, resp, size, scale, k))
+            return np.stack(out).astype(np.float32), feats
+        return (self.descriptor.describe(images),
+                [self.extractor.extract(im, k) for im in images])
+
+
+def store_features(ref_map: Any, features_of: Callable[[str], LocalFeatures],
+                   extractor: ReferenceExtractor) -> None:
+    """Write the feature files of the saved map ``ref_map`` (features of each reference id
+    from ``features_of``) and list them in its manifest."""
+    from vlm_vpr_ros.maps.features import attach_features
+
+    if ref_map.path is None:
+        raise MapError("save the map before storing its local features")
+    by_submap = {s.id: _Lazy(list(s.ids), features_of) for s in ref_map.submaps}
+    p = extractor.preset
+    ref_map.manifest = attach_features(Path(ref_map.path), ref_map.manifest, by_submap,
+                                       extractor.identity(), p.name, p.max_keypoints,
+                                       p.query_max_keypoints)
+
+
+class _Lazy(Sequence):
+    """Features of a list of ids, produced when indexed (bounded memory for large maps)."""
+
+    def __init__(self, ids: list[str], fn: Callable[[str], LocalFeatures]) -> None:
+        self.ids, self.fn = ids, fn
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def __getitem__(self, i):  # type: ignore[override]
+        return self.fn(self.ids[i])
+
+
+def calibrate_map(ref_map: Any, max_queries: int = LOO_QUERIES, top_k: int = 20,
+                  progress: bool = False, seed: int = 0,
+                  matcher_options: Mapping[str, Any] | None = None) -> dict[str, Any] | None:
+    """Leave-one-out calibration of ``p_correct`` on a saved map with stored local features,
+    written as its ``verification.json``; None when the map stores no features."""
+    from vlm_vpr_ros.maps.features import FeatureStore
+
+    store = FeatureStore.open(Path(ref_map.path), ref_map.manifest)
+    if store is None:
+        return None
+    t0 = time.monotonic()
+    from vlm_vpr_ros.localization.verification.presets import get_preset
+
+    preset = get_preset(store.preset or "sift")
+    matcher = create_matcher(preset.matcher, {**preset.matcher_config,  # stored features are
+                                              **dict(matcher_options or {})})
+    geometry = from_mapping(GeometryConfig, preset.geometry, "geometry")  # ... the queries
+    owners = [(si, j) for si, s in enumerate(ref_map.submaps) for j in range(s.count)]
+    coords = np.concatenate([np.asarray(s.coords) for s in ref_map.submaps])
+    starts = np.cumsum([0] + [s.count for s in ref_map.submaps])
+    vectors: dict[int, np.ndarray] = {}
+
+    def vec(g: int) -> np.ndarray:
+        si, j = owners[g]
+        if si not in vectors:
+            vectors[si] = np.asarray(ref_map.submaps[si].vectors(), np.float32)
+        return vectors[si][j:j + 1]
+
+    everything = list(range(len(ref_map.submaps)))
+
+    def search(g: int, k: int) -> list[tuple[float, int]]:
+        found = ref_map.search_submaps(everything, vec(g), k)
+        return [(d, int(starts[si] + j)) for d, si, j in found]
+
+    def features_of(g: int) -> LocalFeatures:
+        si, j = owners[g]
+        return store.get(ref_map.submaps[si].id, j)
+
+    def inliers_of(q: LocalFeatures, refs: Sequence[LocalFeatures]) -> np.ndarray:
+        prepared = matcher.prepare(q)
+        out = np.zeros(len(refs), np.int64)
+        for i, r in enumerate(refs):
+            m = matcher.match(prepared, q, r)
+            if len(m):
+                out[i] = int(fundamental_inliers(q.keypoints[m[:, 0]], r.keypoints[m[:, 1]],
+                                                 geometry).sum())
+        return out
+
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=min(max_queries, len(owners)), desc="verification calibration",
+                   unit="query", disable=None, leave=False)
+    with one_blas_thread():
+        doc = loo_calibration(coords, search, features_of, inliers_of, top_k,
+                              EvidenceConfig(), max_queries, seed,
+                              (lambda d, n: bar.update(1)) if bar is not None else None)
+    if bar is not None:
+        bar.close()
+    doc["feature"] = store.feature
+    doc["preset"] = store.preset
+    save_doc(ref_map, doc)
+    loo = doc["loo"]
+    log.info("verification calibration: %d leave-one-out queries (%d wrong, %d right), "
+             "%.1f s", loo["queries"], loo["wrong"], loo["right"], time.monotonic() - t0)
+    return doc
+
+
+def edit_features(tx: Any, ref_map: Any, gen: int,
+                  rewritten: Mapping[str, Sequence[LocalFeatures]],
+                  dropped: Sequence[str]) -> None:
+    """``map add/remove`` inside its transaction ``tx``: write the feature files of every
+    rewritten submap under the generation's names (``<id>.g<gen>``), drop those of emptied
+    submaps, and update the manifest's ``local_features`` section in ``tx.new``."""
+    from vlm_vpr_ros.maps.features import make_section, write_submap_features
+
+    sec = tx.new.get("local_features")
+    if not sec:
+        return
+    dtype, dim = np.dtype(sec["feature"]["dtype"]), int(sec["feature"]["descriptor_dim"])
+    entries = dict(sec["submaps"])
+    for sid in [*rewritten, *dropped]:
+        for rel in (entries.get(sid) or {}).get("files", {}).values():
+            tx.new["files"].pop(rel, None)
+    for sid in dropped:
+        entries.pop(sid, None)
+    for sid, feats in rewritten.items():
+        entries[sid] = write_submap_features(Path(tx.path), f"{sid}.g{gen}", feats, dtype, dim)
+        for rel in entries[sid]["files"].values():
+            tx.record(rel)
+    tx.new["local_features"] = make_section(sec["feature"], sec["preset"],
+                                            sec["max_keypoints"], sec["query_max_keypoints"],
+                                            entries, tx.new["files"])
+
+
+def map_extractor(ref_map: Any, descriptor: Any) -> ReferenceExtractor:
+    """The extractor of new references for a map with stored features: the map's own preset
+    and feature settings (MapError when this software would extract other features)."""
+    sec = ref_map.manifest.get("local_features")
+    if not sec:
+        return ReferenceExtractor(descriptor, None)
+    refx = ReferenceExtractor(descriptor, sec.get("preset") or "sift",
+                              sec["feature"].get("config") or {})
+    refx.preset = replace(refx.preset, max_keypoints=int(sec["max_keypoints"]),
+                          query_max_keypoints=int(sec["query_max_keypoints"]))
+    mine, stored = refx.identity(), sec["feature"]
+    diff = [k for k in ("name", "config", "descriptor_dim", "dtype")
+            if mine.get(k) != stored.get(k)]
+    if diff:
+        raise MapError(f"{ref_map.path}: the map stores {stored.get('name')} features "
+                       f"{stored.get('config')}; new references would get {mine.get('config')} "
+                       f"(differs in {', '.join(diff)})")
+    return refx

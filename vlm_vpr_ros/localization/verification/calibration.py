@@ -1,0 +1,219 @@
+"""``p_correct``: the probability that a verified answer is right (within the place radius),
+calibrated on the map's own references and refined on a user's labelled queries.
+
+Build time (:func:`loo_calibration`): up to ``max_queries`` references (half of them among
+those with another reference within the place radius, when there are any) are used as queries
+against the rest of the map — retrieval with the map's own index, the copy of the image and
+exact duplicates left out, verification of the top K with the stored features — and the
+evidence score (:mod:`.evidence`) of each answer is kept with whether it was right.
+
+Many maps have no two references of one place (the 71-image demo map: none within 25 m), so
+leave-one-out mostly yields *wrong* answers. The calibration therefore rests on them only:
+``p_correct(s) = 1 - (1 + #{wrong scores >= s}) / (1 + #wrong)``, the conformal p-value of the
+score under "this answer is wrong". For a wrong answer exchangeable with the leave-one-out
+ones, ``P(p_correct >= 0.95) <= 5 %``: the threshold bounds the false-fix rate among wrong
+answers, whatever the share of right ones. It never claims what it has not seen: with fewer
+than 19 wrong answers no score reaches 0.95, and an uncalibrated map gives NaN (never a fix).
+
+``vlm-vpr calibrate`` adds the wrong answers among a user's labelled queries (real queries of
+the deployment: the most relevant negatives) to the set (the ``user`` section).
+
+The radius of a verified answer: a right answer lies within the place radius of the truth,
+taken as uniform over the place disc (``r_q = R sqrt(q)``). See :func:`verified_radius`.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Mapping, Sequence
+
+import numpy as np
+
+from vlm_vpr_ros.errors import MapError
+from vlm_vpr_ros.geodesy import EARTH_RADIUS_KM, haversine_km, latlon_to_unit
+from vlm_vpr_ros.localization.verification.evidence import EvidenceConfig, weigh
+from vlm_vpr_ros.maps.documents import load_document, save_document
+from vlm_vpr_ros.types import LocalFeatures
+
+log = logging.getLogger(__name__)
+
+VERIFY_CAL_FILE = "verification.json"
+VERIFY_CAL_FORMAT = "vlm_vpr_ros.verification_calibration"
+VERIFY_CAL_VERSION = 1
+#: below this inlier ratio another place holds at least half the winner's evidence: the
+#: answer is a near tie, and p_correct is capped at ratio / (1 + ratio) (<= 2/3) whatever the
+#: map's wrong answers look like (a sparse map's leave-one-out has few strong look-alikes)
+AMBIGUOUS_RATIO = 2.0
+
+
+@dataclass
+class PCorrect:
+    """The calibrated map from evidence score to ``p_correct`` (module docstring)."""
+
+    null_scores: np.ndarray  # scores of wrong answers, sorted ascending
+    place_radius_m: float = 25.0
+    source: str = "none"
+
+    @property
+    def calibrated(self) -> bool:
+        return len(self.null_scores) > 0
+
+    def p_correct(self, score: float) -> float:
+        n = len(self.null_scores)
+        if n == 0 or not math.isfinite(score):
+            return math.nan
+        above = n - int(np.searchsorted(self.null_scores, score, side="left"))
+        p = 1.0 - (1.0 + above) / (1.0 + n)
+        if score < AMBIGUOUS_RATIO:  # another place holds half the winner's evidence or more
+            p = min(p, score / (1.0 + score))
+        return p
+
+    def place_quantile(self, q: float) -> float:
+        """Radius (m) holding fraction ``q`` of right answers' errors: uniform over the place
+        disc, ``R sqrt(q)`` (a right answer is anywhere within the place radius; the errors of
+        right leave-one-out answers, between two references, understate a query's)."""
+        return float(self.place_radius_m * math.sqrt(min(max(q, 0.0), 1.0)))
+
+    @classmethod
+    def from_doc(cls, doc: Mapping[str, Any] | None) -> "PCorrect":
+        if not doc:
+            return cls(np.zeros(0))
+        null = list(doc.get("null_scores", [])) + list((doc.get("user") or {})
+                                                        .get("null_scores", []))
+        n_loo = int((doc.get("loo") or {}).get("queries", 0))
+        n_user = int((doc.get("user") or {}).get("queries", 0))
+        src = f"map leave-one-out ({n_loo} queries)" if n_loo else "none"
+        if n_user:
+            src += f" + user ({n_user} labelled queries)"
+        return cls(np.sort(np.asarray(null, np.float64)),
+                   float(doc.get("place_radius_m", 25.0)), src)
+
+
+def verified_radius(model: PCorrect, p: float, q: float, fallback_m: float,
+                    level: float) -> float:
+    """Radius (m) holding the truth with probability ``q``. An answer verified at ``p_correct
+    >= level`` (the fix threshold: there the bound on wrong answers holds) is right with
+    probability ``p``: the place's error quantile ``q / p`` when ``p >= q``. Anything else keeps
+    the (posterior's) ``fallback_m``: ``p_correct`` below the threshold is no probability to
+    narrow a radius with."""
+    if not (math.isfinite(p) and p >= max(q, level)):
+        return fallback_m
+    return min(model.place_quantile(q / p), fallback_m)
+
+
+def sample_queries(coords: np.ndarray, max_queries: int, place_radius_m: float,
+                   rng: np.random.Generator) -> np.ndarray:
+    """Rows used as leave-one-out queries: half among references with another within the place
+    radius (so right answers can occur), the rest among all."""
+    n = len(coords)
+    xyz = latlon_to_unit(coords[:, 0], coords[:, 1])
+    cos_r = math.cos(place_radius_m / 1000.0 / EARTH_RADIUS_KM)
+    twin = np.zeros(n, bool)
+    for chunk in np.array_split(np.arange(n), max(1, n // 2048)):
+        near = (xyz[chunk] @ xyz.T) >= cos_r
+        near[np.arange(len(chunk)), chunk] = False
+        twin[chunk] = near.any(1)
+    k = min(n, max_queries)
+    pool = np.flatnonzero(twin)
+    first = rng.choice(pool, size=min(len(pool), k // 2), replace=False)
+    rest = np.setdiff1d(np.arange(n), first)
+    second = rng.choice(rest, size=min(len(rest), k - len(first)), replace=False)
+    return np.sort(np.concatenate([first, second]).astype(np.int64))
+
+
+def loo_calibration(coords: np.ndarray, search: Callable[[int, int], list[tuple[float, int]]],
+                    features_of: Callable[[int], LocalFeatures],
+                    inliers_of: Callable[[LocalFeatures, Sequence[LocalFeatures]], np.ndarray],
+                    top_k: int, cfg: EvidenceConfig = EvidenceConfig(),
+                    max_queries: int = 150, seed: int = 0,
+                    progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
+    """The build-time calibration (module docstring) as a JSON-ready dict.
+
+    ``coords``: (n, 2) positions of the references (global row order); ``search(row, k)``: the
+    k nearest references of ``row`` by descriptor as (squared distance, row), itself included;
+    ``features_of(row)``; ``inliers_of(query, refs)``: verified inlier counts."""
+    t0 = time.monotonic()
+    coords = np.asarray(coords, np.float64)
+    rng = np.random.default_rng(seed)
+    rows = sample_queries(coords, max_queries, cfg.place_radius_m, rng) if len(coords) > 2 \
+        else np.zeros(0, np.int64)
+    wrong, right_err = [], []
+    for done, qi in enumerate(rows.tolist()):
+        # only the query itself is left out: a copy of its image elsewhere in the map (a
+        # re-upload at another position, a look-alike) is what real queries meet too
+        found = [(d, j) for d, j in search(qi, top_k + 1) if j != qi]
+        cand = [j for _, j in found[:top_k]]
+        if cand:
+            inl = inliers_of(features_of(qi), [features_of(j) for j in cand])
+            ev = weigh(coords[cand, 0], coords[cand, 1], inl, None, cfg)
+            w = cand[ev.winner]
+            err = float(haversine_km(coords[qi, 0], coords[qi, 1],
+                                     coords[w, 0], coords[w, 1])) * 1000.0
+            if err <= cfg.place_radius_m:
+                right_err.append(round(err, 2))
+            else:
+                wrong.append(round(float(ev.score), 4))
+        if progress is not None:
+            progress(done + 1, len(rows))
+    return {"format": VERIFY_CAL_FORMAT, "version": VERIFY_CAL_VERSION,
+            "place_radius_m": cfg.place_radius_m, "competitor_floor": cfg.competitor_floor,
+            "top_k": int(top_k), "null_scores": sorted(wrong),
+            "place_errors_m": sorted(right_err),
+            "loo": {"queries": int(len(rows)), "wrong": len(wrong), "right": len(right_err),
+                    "seconds": round(time.monotonic() - t0, 1)}}
+
+
+def with_user_negatives(doc: Mapping[str, Any] | None, scores: Sequence[float], queries: int,
+                        results: str) -> dict[str, Any]:
+    """``doc`` (or a new user-only calibration) with the scores of a user's wrong answers as
+    its ``user`` section (``vlm-vpr calibrate``: replaces an earlier user section)."""
+    new = dict(doc) if doc else {
+        "format": VERIFY_CAL_FORMAT, "version": VERIFY_CAL_VERSION, "place_radius_m": 25.0,
+        "competitor_floor": EvidenceConfig().competitor_floor, "top_k": 20,
+        "null_scores": [], "place_errors_m": [], "loo": {"queries": 0}}
+    new["user"] = {"null_scores": sorted(round(float(s), 4) for s in scores),
+                   "queries": int(queries), "results": results}
+    return validate(new, "verification calibration")
+
+
+# -- persistence ------------------------------------------------------------------------------
+def validate(doc: Any, where: str) -> dict[str, Any]:
+    """Structure check; MapError naming the field."""
+    if not isinstance(doc, dict) or doc.get("format") != VERIFY_CAL_FORMAT:
+        raise MapError(f"{where}: not a {VERIFY_CAL_FORMAT} file")
+    if doc.get("version") != VERIFY_CAL_VERSION:
+        raise MapError(f"{where}: verification calibration version {doc.get('version')!r} "
+                       "unsupported")
+    for key in ("null_scores", "place_errors_m"):
+        vals = doc.get(key)
+        if not isinstance(vals, list) or not all(
+                isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+                and v >= 0 for v in vals):
+            raise MapError(f"{where}: {key} must be a list of finite numbers >= 0")
+    user = doc.get("user")
+    if user is not None and (not isinstance(user, dict)
+                             or not isinstance(user.get("null_scores"), list)):
+        raise MapError(f"{where}: user section malformed")
+    for key in ("place_radius_m", "top_k"):
+        v = doc.get(key)
+        if not isinstance(v, (int, float)) or isinstance(v, bool) or not v > 0:
+            raise MapError(f"{where}: {key} must be a number > 0")
+    return doc
+
+
+def load_doc(ref_map: Any) -> dict[str, Any] | None:
+    """The map's verification.json (validated, checksum-checked) or None when it has none."""
+    doc = load_document(ref_map, "verification_calibration", "verification calibration")
+    return None if doc is None else validate(
+        doc, f"{ref_map.path}/{ref_map.manifest['verification_calibration']}")
+
+
+def save_doc(ref_map: Any, doc: Mapping[str, Any]) -> Path:
+    """Write ``verification.json`` into a saved map and list it in the manifest (last)."""
+    validate(dict(doc), VERIFY_CAL_FILE)
+    return save_document(ref_map, "verification_calibration", VERIFY_CAL_FILE, doc,
+                         "verification calibration")

@@ -1,0 +1,284 @@
+"""The verification stage: after retrieval and fusion, verify the top K candidates with local
+features and geometry, re-rank them by the verified evidence and compute ``p_correct`` and the
+radii of the answer (docs/verification.md).
+
+Reference features come from the map's feature store (:mod:`vlm_vpr_ros.maps.features`), else
+from the reference images (the map's own ``images/`` folder, or ``images_dir``) extracted on
+demand and cached; without either the answers are flagged ``unverified``. A feature store that
+is damaged or of another feature type is a MapError at open when verification is ``required``,
+else a warning and unverified answers — never a fix from wrong data.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import math
+import threading
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from vlm_vpr_ros.errors import ConfigError, DescriptorError, ImageDecodeError, MapError
+from vlm_vpr_ros.geodesy import haversine_km
+from vlm_vpr_ros.localization.verification.base import (LocalFeatureExtractor, Matcher,
+                                                        create_feature, create_matcher,
+                                                        one_blas_thread)
+from vlm_vpr_ros.localization.verification.calibration import (PCorrect, load_doc,
+                                                               verified_radius)
+from vlm_vpr_ros.localization.verification.evidence import EvidenceConfig, weigh
+from vlm_vpr_ros.localization.verification.geometry import GeometryConfig, fundamental_inliers
+from vlm_vpr_ros.localization.verification.presets import preset_for_map
+from vlm_vpr_ros.maps.features import FeatureStore
+from vlm_vpr_ros.config import from_mapping
+from vlm_vpr_ros.types import Hypothesis, LocalFeatures
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class VerificationConfig:
+    top_k: int = 20  # candidates verified per query (0 = off)
+    required: bool = False  # a missing / damaged feature store is an error at open
+    images_dir: str = ""  # reference images for maps without stored features
+    cache_size: int = 256  # reference features extracted from images, kept in memory
+    #: local-feature / matcher settings that are not part of the map (learned weights' paths,
+    #: device), e.g. {"weights": "/data/disk/depth-save.pth"}
+    feature_options: Mapping[str, Any] = field(default_factory=dict)
+    matcher_options: Mapping[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if not (0 <= self.top_k <= 1000 and self.cache_size >= 0):
+            raise ConfigError(f"verify_top_k must be in 0..1000, got {self.top_k}")
+
+
+def _same_feature(a: dict, b: dict) -> list[str]:
+    return [k for k in ("name", "config", "descriptor_dim", "dtype") if a.get(k) != b.get(k)]
+
+
+class Verifier:
+    """Verifies the candidates of a hypothesis against one map (module docstring)."""
+
+    def __init__(self, ref_map: Any, config: VerificationConfig | dict | None = None,
+                 feature_options: dict | None = None, matcher_options: dict | None = None
+                 ) -> None:
+        if not isinstance(config, VerificationConfig):
+            config = from_mapping(VerificationConfig, config, "verification")
+        self.map, self.config = ref_map, config
+        self.store: FeatureStore | None = None
+        self.unavailable = ""  # why answers are unverified ("" = verification runs)
+        self.images_root: Path | None = None
+        self.extractor: LocalFeatureExtractor | None = None
+        self.matcher: Matcher | None = None
+        self.model = PCorrect(np.zeros(0))
+        self._cache: collections.OrderedDict[str, LocalFeatures | None] = \
+            collections.OrderedDict()
+        self._lock = threading.Lock()
+        if config.top_k == 0:
+            self.unavailable = "verification off (verify_top_k 0)"
+            return
+        root = Path(ref_map.path) if ref_map.path is not None else None
+        self.images_root = self._images_root(root)  # also for drawing (--save-matches)
+        try:
+            self.store = FeatureStore.open(root, ref_map.manifest) if root else None
+        except MapError as exc:
+            if config.required:
+                raise
+            log.warning("%s; answers are unverified", exc)
+            self.unavailable = f"feature store unusable: {exc}"
+            return
+        if self.store is not None:
+            self.preset = preset_for_map(self.store.preset or "sift", None)
+            feat = self.store.feature
+            self.preset = replace(self.preset, feature=feat["name"],
+                                  feature_config=feat.get("config", {}),
+                                  max_keypoints=self.store.max_keypoints,
+                                  query_max_keypoints=self.store.query_max_keypoints)
+        else:
+            if self.images_root is None:
+                msg = ("the map stores no local features and no reference images folder is "
+                       "reachable (give images_dir / --reference-images)")
+                if config.required:
+                    raise MapError(f"{root}: {msg}")
+                log.warning("%s: %s; answers are unverified", root, msg)
+                self.unavailable = msg
+                return
+            self.preset = preset_for_map("sift", ref_map.descriptor_identity)
+            log.info("%s stores no local features: verifying against the images in %s",
+                     root, self.images_root)
+        try:
+            self._build({**config.feature_options, **dict(feature_options or {})},
+                        {**config.matcher_options, **dict(matcher_options or {})})
+        except (MapError, ConfigError, DescriptorError) as exc:
+            msg = f"{root}: local features unusable: {exc}"
+            if config.required:
+                raise MapError(msg) from None
+            log.warning("%s; answers are unverified", msg)
+            self.unavailable = msg
+
+    def _build(self, feature_options: dict, matcher_options: dict) -> None:
+        p = self.preset
+        self.extractor = create_feature(p.feature, {**p.feature_config, **feature_options})
+        self.matcher = create_matcher(p.matcher, {**p.matcher_config, **matcher_options})
+        self.geometry = from_mapping(GeometryConfig, p.geometry, "geometry")
+        if self.store is not None:
+            diff = _same_feature(self.store.feature, self.extractor.identity())
+            if diff:
+                raise MapError(f"{self.map.path}: stored local features are "
+                               f"{self.store.feature} but the query side would use "
+                               f"{self.extractor.identity()} (differs in {', '.join(diff)})")
+            built = self.store.feature.get("weights_sha256")
+            now = self.extractor.identity().get("weights_sha256")
+            if built and now and built != now:
+                log.warning("%s: the map's %s features were extracted with another checkpoint "
+                            "(sha256 %s..., now %s...): matches may be weaker", self.map.path,
+                            p.feature, built[:12], now[:12])
+        doc = load_doc(self.map)
+        if doc is not None and doc.get("feature") not in (None, self.extractor.identity()) \
+                and _same_feature(doc["feature"], self.extractor.identity()):
+            log.warning("%s: the verification calibration was made with other local "
+                        "features; p_correct is uncalibrated", self.map.path)
+            doc = None
+        self.model = PCorrect.from_doc(doc)
+        self.evidence = EvidenceConfig(
+            place_radius_m=float((doc or {}).get("place_radius_m", 25.0)),
+            competitor_floor=int((doc or {}).get("competitor_floor", 12)))
+
+    def _images_root(self, root: Path | None) -> Path | None:
+        if self.config.images_dir:
+            d = Path(self.config.images_dir).expanduser()
+            if not d.is_dir():
+                raise ConfigError(f"reference images folder {d} does not exist")
+            return d
+        images = self.map.manifest.get("images")
+        if root is not None and images:
+            return root / images.get("folder", "images")
+        return None
+
+    # -- properties ------------------------------------------------------------------------
+    @property
+    def enabled(self) -> bool:
+        return not self.unavailable
+
+    @property
+    def calibration_source(self) -> str:
+        return self.model.source
+
+    def reuses_sift_of(self, descriptor: Any) -> bool:
+        """Whether the query features are the SIFT pass of this VLAD ``descriptor``."""
+        if not self.enabled or self.preset.feature != "sift" or \
+                not hasattr(descriptor, "describe_with_sift"):
+            return False
+        cfg = self.extractor.config
+        vc = descriptor.cfg
+        return (cfg.get("max_side") == vc.max_side and cfg.get("contrast_threshold") == 0.04
+                and cfg.get("edge_threshold") == 10.0
+                and self.preset.query_max_keypoints <= vc.n_features)
+
+    # -- features ----------------------------------------------------------------------------
+    def query_features(self, image: np.ndarray) -> LocalFeatures:
+        return self.extractor.extract(image, self.preset.query_max_keypoints)
+
+    def query_features_from_sift(self, sift_pass: tuple) -> LocalFeatures:
+        from vlm_vpr_ros.localization.verification.sift import RootSift
+
+        xy, des, resp, scale, size = sift_pass
+        return RootSift.from_pass(xy, des, resp, size, scale, self.preset.query_max_keypoints)
+
+    def reference_features(self, candidates: Sequence[Any]) -> list[LocalFeatures | None]:
+        if self.store is not None:
+            return [self.store.get(c.submap, c.row) if c.row >= 0 else None
+                    for c in candidates]
+        return [self._from_image(c.ref_id) for c in candidates]
+
+    def _from_image(self, ref_id: str) -> LocalFeatures | None:
+        from vlm_vpr_ros.files.images import load_image
+
+        with self._lock:
+            if ref_id in self._cache:
+                self._cache.move_to_end(ref_id)
+                return self._cache[ref_id]
+        try:
+            f: LocalFeatures | None = self.extractor.extract(
+                load_image(self.images_root / ref_id), self.preset.max_keypoints)
+        except (ImageDecodeError, OSError) as exc:
+            log.warning("reference %s cannot be verified: %s", ref_id, exc)
+            f = None
+        with self._lock:
+            self._cache[ref_id] = f
+            while len(self._cache) > self.config.cache_size:
+                self._cache.popitem(last=False)
+        return f
+
+    def inliers(self, query: LocalFeatures, refs: Sequence[LocalFeatures | None]
+                ) -> tuple[np.ndarray, list[np.ndarray]]:
+        """Inlier counts (-1 where a reference has no features) and the inlier matches."""
+        counts, kept = np.full(len(refs), -1, np.int64), []
+        with one_blas_thread():
+            prepared = self.matcher.prepare(query)
+            for i, r in enumerate(refs):
+                if r is None:
+                    kept.append(np.zeros((0, 2), np.int64))
+                    continue
+                m = self.matcher.match(prepared, query, r)
+                mask = fundamental_inliers(query.keypoints[m[:, 0]], r.keypoints[m[:, 1]],
+                                           self.geometry) if len(m) else np.zeros(0, bool)
+                counts[i] = int(mask.sum())
+                kept.append(m[mask])
+        return counts, kept
+
+    # -- the stage ---------------------------------------------------------------------------
+    def to_verify(self, candidates: Sequence[Any]) -> list[Any]:
+        """The top K in posterior order, then those of the top K in visual order (squared
+        descriptor distance) not among them: with a prior, the look-alikes the prior pushed
+        down stay competitors, so the evidence depends on the prior only through the explicit
+        gate (without a prior both orders hold the same candidates)."""
+        k = self.config.top_k
+        top = list(candidates[:k])
+        seen = {id(c) for c in top}
+        visual = sorted(candidates, key=lambda c: c.l2_sq)[:k]
+        return top + [c for c in visual if id(c) not in seen]
+
+    def verify(self, hyp: Hypothesis, query: LocalFeatures | None, error_model: Any = None,
+               trust_prior: bool = False, level: float = 0.95) -> None:
+        """Verify ``hyp``'s top K candidates in place (module docstring); the inlier matches
+        of the re-ranked top K are kept in ``hyp.matches`` (for drawing)."""
+        if not self.enabled or query is None or not hyp.candidates:
+            why = self.unavailable or ("no query features" if query is None else "no match")
+            hyp.verification = f"unverified: {why}"
+            hyp.flags = tuple(hyp.flags) + ("unverified",)
+            return
+        t0 = time.perf_counter()
+        top = self.to_verify(hyp.candidates)
+        counts, matches = self.inliers(query, self.reference_features(top))
+        lat = np.array([c.lat for c in top])
+        lon = np.array([c.lon for c in top])
+        logp = None
+        if hyp.prior is not None and error_model is not None:
+            g = np.atleast_1d(haversine_km(hyp.prior.lat, hyp.prior.lon, lat, lon))
+            logp = np.asarray(error_model.log_density(g), np.float64)
+        ev = weigh(lat, lon, counts, logp, self.evidence)
+        old = top[0]
+        ranked = [replace(top[i], inliers=int(counts[i])) for i in ev.order]
+        seen = {id(c) for c in top}
+        hyp.candidates = ranked + [c for c in hyp.candidates if id(c) not in seen]
+        best = ranked[0]
+        p = self.model.p_correct(ev.score)
+        pu = self.model.p_correct(ev.score_ungated)
+        hyp.p_correct, hyp.p_correct_without_prior = p, pu
+        hyp.inliers, hyp.inlier_ratio = ev.winner_inliers, ev.score
+        shift_m = float(haversine_km(old.lat, old.lon, best.lat, best.lon)) * 1000.0
+        hyp.lat, hyp.lon, hyp.ref_id = best.lat, best.lon, best.ref_id
+        p_radius = p if trust_prior else pu  # an untrusted prior narrows no radius
+        fb68 = hyp.uncertainty_m + shift_m
+        fb95 = (hyp.radius95_m if math.isfinite(hyp.radius95_m) else fb68) + shift_m
+        r68 = verified_radius(self.model, p_radius, 0.68, fb68, level)
+        hyp.uncertainty_m = r68
+        hyp.radius95_m = max(r68, verified_radius(self.model, p_radius, 0.95, fb95, level))
+        hyp.verification = "verified"
+        hyp.flags = tuple(hyp.flags) + ("verified",)
+        hyp.matches = [matches[i] for i in ev.order]
+        hyp.timings_ms["verify_ms"] = (time.perf_counter() - t0) * 1e3

@@ -1,0 +1,91 @@
+"""The status rule of an answer, pure (no ROS): used by the NavSatFix adapter, the results CSV,
+the relocalize answer and diagnostics, so they all say the same.
+
+``fix`` iff the answer was verified with ``p_correct >= fix_min_p_correct`` and its per-axis
+σ is at most ``fix_max_sigma_m``; an answer that reaches the threshold only because the prior
+removed far look-alikes from the evidence (``prior_resolved``) is a fix only when the prior is
+trusted (``trust_prior_for_fix``; ``trust_operator_prior`` for priors that carry their own
+``sigma_km``, e.g. an operator's hint through the ``fixed`` provider). docs/verification.md.
+
+σ: the per-axis σ of an isotropic 2-D Gaussian that holds at least the answer's 68 % and 95 %
+radii, ``σ = max(r68 / 1.5096, r95 / 2.4477)`` (Rayleigh quantiles), always finite.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from vlm_vpr_ros.errors import ConfigError
+from vlm_vpr_ros.geodesy import MAX_DISTANCE_KM
+from vlm_vpr_ros.types import Hypothesis
+
+#: the largest σ ever published (half the Earth's circumference)
+MAX_SIGMA_M = MAX_DISTANCE_KM * 1000.0
+#: radius / σ of an isotropic 2-D Gaussian holding 68 % and 95 % of the mass (Rayleigh)
+K68 = math.sqrt(-2.0 * math.log(0.32))
+K95 = math.sqrt(-2.0 * math.log(0.05))
+
+
+@dataclass(frozen=True)
+class StatusPolicy:
+    fix_min_p_correct: float = 0.95
+    fix_max_sigma_m: float = 50.0
+    trust_prior_for_fix: bool = False  # prior_resolved answers may be fixes (any prior)
+    trust_operator_prior: bool = False  # ... when the prior carries its own sigma_km
+
+    def __post_init__(self) -> None:
+        if not (0.0 < self.fix_min_p_correct <= 1.0):
+            raise ConfigError("fix_min_p_correct must be in (0, 1]")
+        if not (self.fix_max_sigma_m > 0 and math.isfinite(self.fix_max_sigma_m)):
+            raise ConfigError("fix_max_sigma_m must be a positive finite number")
+
+    def trusts(self, hyp: Hypothesis) -> bool:
+        """Whether the answer's prior may resolve a fix."""
+        if hyp.prior is None:
+            return False
+        return self.trust_prior_for_fix or (self.trust_operator_prior
+                                            and hyp.prior.sigma_km is not None)
+
+
+def finite_sigma(sigma_m: float) -> float:
+    """Clamp to (0, MAX_SIGMA_M]; non-finite or non-positive values become the max."""
+    s = float(sigma_m)
+    if not math.isfinite(s) or s <= 0.0:
+        return MAX_SIGMA_M
+    return min(s, MAX_SIGMA_M)
+
+
+def horizontal_sigma(hyp: Hypothesis) -> float:
+    """Per-axis σ (m) of an answer from its 68 % / 95 % radii (module docstring)."""
+    s = finite_sigma(hyp.uncertainty_m) / K68
+    r95 = float(getattr(hyp, "radius95_m", math.nan))
+    if math.isfinite(r95) and r95 > 0:
+        s = max(s, finite_sigma(r95) / K95)
+    return finite_sigma(s)
+
+
+def prior_resolved(hyp: Hypothesis, policy: StatusPolicy) -> bool:
+    """The answer reaches ``fix_min_p_correct`` only with prior-gated competitors."""
+    p, pu = hyp.p_correct, hyp.p_correct_without_prior
+    return (hyp.prior is not None and math.isfinite(p) and p >= policy.fix_min_p_correct
+            and not (math.isfinite(pu) and pu >= policy.fix_min_p_correct))
+
+
+def fix_status(hyp: Hypothesis, policy: StatusPolicy | None = None) -> tuple[bool, str]:
+    """(is a fix, why not) under ``policy`` (module docstring)."""
+    policy = policy or StatusPolicy()
+    if "no_match" in hyp.flags or not (math.isfinite(hyp.lat) and math.isfinite(hyp.lon)):
+        return False, "no match"
+    p = hyp.p_correct
+    if not math.isfinite(p):
+        return False, "unverified" if "unverified" in hyp.flags or not hyp.verification \
+            else "uncalibrated verification"
+    if p < policy.fix_min_p_correct:
+        return False, f"p_correct {p:.3f} < {policy.fix_min_p_correct:g}"
+    if prior_resolved(hyp, policy) and not policy.trusts(hyp):
+        return False, "prior_resolved (the prior is not trusted for fixes)"
+    sigma = horizontal_sigma(hyp)
+    if sigma > policy.fix_max_sigma_m:
+        return False, f"sigma {sigma:.0f} m > {policy.fix_max_sigma_m:g} m"
+    return True, ""

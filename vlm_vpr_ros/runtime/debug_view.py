@@ -1,0 +1,145 @@
+"""Debug view of one query (pure: no ROS): what the node matched.
+
+:func:`render` puts the query beside the chosen reference image (both scaled to one height),
+with a caption (status, sigma, reference, prior, posterior weight) and, when the caller passes
+them, verified matches as lines between the two images. :class:`ReferenceImages` finds the
+reference pictures: the map's own ``images/`` folder (teach maps keep them) or a folder the
+user names (``reference_images_dir``: the folder the map was built from). :func:`candidate_rows`
+lists the best candidates with their posterior weights and inliers. Rendering runs only when
+``publish_debug`` is on (the node then asks the runtime to keep the decoded frame).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import OrderedDict
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import cv2
+import numpy as np
+
+from vlm_vpr_ros.errors import VlmVprError
+from vlm_vpr_ros.files.images import encode_jpeg, load_image
+
+log = logging.getLogger(__name__)
+PANEL_HEIGHT = 360  # px: both images are scaled to this height
+CAPTION_HEIGHT = 48
+MAX_CANDIDATES_LISTED = 10
+_FONT = cv2.FONT_HERSHEY_SIMPLEX
+
+
+class ReferenceImages:
+    """Reference pictures by reference id, scaled to the panel height (a small LRU cache)."""
+
+    def __init__(self, folder: str | Path | None, cache_size: int = 16) -> None:
+        self.folder = Path(folder).expanduser() if folder else None
+        self._cache: OrderedDict[str, tuple[np.ndarray, float] | None] = OrderedDict()
+        self._size = cache_size
+
+    @classmethod
+    def for_map(cls, map_path: str | Path | None, manifest: Mapping[str, Any],
+                override: str = "") -> "ReferenceImages":
+        """``override`` when given, else the map's own images folder when it keeps one."""
+        if override:
+            return cls(override)
+        entry = manifest.get("images") or {}
+        if map_path is not None and entry.get("folder"):
+            return cls(Path(map_path) / entry["folder"])
+        return cls(None)
+
+    def load(self, ref_id: str) -> tuple[np.ndarray, float] | None:
+        """(RGB thumbnail, thumbnail px per original px), or None when unavailable."""
+        if ref_id in self._cache:
+            self._cache.move_to_end(ref_id)
+            return self._cache[ref_id]
+        found = None
+        rel = Path(ref_id)
+        if self.folder is not None and ref_id and not rel.is_absolute() and ".." not in rel.parts:
+            try:
+                rgb = load_image(self.folder / rel)
+                found = _scaled(rgb)
+            except (VlmVprError, OSError) as exc:
+                log.debug("reference image %s not available: %s", ref_id, exc)
+        self._cache[ref_id] = found
+        if len(self._cache) > self._size:
+            self._cache.popitem(last=False)
+        return found
+
+
+def _scaled(rgb: np.ndarray, height: int = PANEL_HEIGHT) -> tuple[np.ndarray, float]:
+    s = height / max(1, rgb.shape[0])
+    w = max(1, int(round(rgb.shape[1] * s)))
+    return cv2.resize(rgb, (w, height), interpolation=cv2.INTER_AREA), s
+
+
+def _text(img: np.ndarray, text: str, org: tuple[int, int], scale: float = 0.5) -> None:
+    cv2.putText(img, text, org, _FONT, scale, (0, 0, 0), 3, cv2.LINE_AA)
+    cv2.putText(img, text, org, _FONT, scale, (255, 255, 255), 1, cv2.LINE_AA)
+
+
+def render(query_rgb: np.ndarray, reference: tuple[np.ndarray, float] | None,
+           caption: Sequence[str], ref_label: str = "",
+           matches: np.ndarray | None = None) -> np.ndarray:
+    """The debug picture (RGB): query | reference, caption below. ``matches``: (n, 4) pixel
+    coordinates ``qx, qy, rx, ry`` in the original query and reference images."""
+    q, qs = _scaled(query_rgb)
+    if reference is not None:
+        r, rs = reference
+    else:
+        r, rs = np.full((PANEL_HEIGHT, q.shape[1], 3), 64, np.uint8), 1.0
+        _text(r, "reference image not available", (10, PANEL_HEIGHT // 2))
+        _text(r, "(set reference_images_dir)", (10, PANEL_HEIGHT // 2 + 22))
+    canvas = np.zeros((PANEL_HEIGHT + CAPTION_HEIGHT, q.shape[1] + r.shape[1], 3), np.uint8)
+    canvas[:PANEL_HEIGHT, :q.shape[1]] = q
+    canvas[:PANEL_HEIGHT, q.shape[1]:] = r
+    _text(canvas, "query", (8, 20))
+    _text(canvas, ref_label or "reference", (q.shape[1] + 8, 20))
+    if matches is not None and reference is not None and len(matches):
+        m = np.asarray(matches, dtype=np.float64)
+        pts = np.column_stack([m[:, 0] * qs, m[:, 1] * qs, m[:, 2] * rs + q.shape[1],
+                               m[:, 3] * rs]).round().astype(np.int32)
+        for qx, qy, rx, ry in pts:
+            cv2.line(canvas, (int(qx), int(qy)), (int(rx), int(ry)), (0, 255, 0), 1,
+                     cv2.LINE_AA)
+    for i, line in enumerate(caption[:2]):
+        _text(canvas, line, (8, PANEL_HEIGHT + 18 + 22 * i))
+    return canvas
+
+
+def jpeg(rgb: np.ndarray, quality: int = 85) -> bytes:
+    return encode_jpeg(rgb, quality)
+
+
+def _num(v: Any, fmt: str) -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return ""
+    return format(v, fmt)
+
+
+def candidate_rows(hyp: Any, limit: int = MAX_CANDIDATES_LISTED) -> list[dict[str, str]]:
+    """The best candidates of a hypothesis, best first: id, position, descriptor distance,
+    posterior weight, distance to the prior, geometric inliers ('' where not computed)."""
+    rows = []
+    for rank, c in enumerate(hyp.candidates[:limit], 1):
+        inliers = getattr(c, "inliers", -1)
+        rows.append({"rank": str(rank), "ref_id": c.ref_id, "lat": _num(c.lat, ".7f"),
+                     "lon": _num(c.lon, ".7f"), "submap": c.submap,
+                     "l2_sq": _num(c.l2_sq, ".4f"), "posterior": _num(c.posterior, ".4f"),
+                     "prior_km": _num(c.prior_km, ".1f"),
+                     "inliers": str(inliers) if inliers is not None and inliers >= 0 else ""})
+    return rows
+
+
+def caption(hyp: Any, status: str, sigma_m: float, error: str = "") -> list[str]:
+    """Two caption lines for a query's outcome (``hyp`` None: the error)."""
+    if hyp is None:
+        return [f"no fix: {error}"[:110], ""]
+    top = hyp.candidates[0] if hyp.candidates else None
+    weight = f", posterior {top.posterior:.2f}" if top is not None and top.posterior else ""
+    prior = (f"prior {hyp.prior.source} ({hyp.prior.lat:.4f}, {hyp.prior.lon:.4f})"
+             if hyp.prior is not None else "no prior: global retrieval")
+    flags = f" FLAGGED [{'|'.join(hyp.flags)}]" if hyp.flagged else ""
+    first = f"{status} sigma {sigma_m:.0f} m  ref {hyp.ref_id} (submap {hyp.submap}){weight}"
+    return [first[:110], f"{prior}, {len(hyp.candidates)} candidates{flags}"[:110]]
