@@ -58,7 +58,7 @@ class TwoSearchLocalizer(Localizer):
         for d, si, j in search_submaps_v1(self.map, list(submaps), q, k):
             sub = self.map.submaps[si]
             out.append(Candidate(sub.ids[j], float(sub.coords[j, 0]), float(sub.coords[j, 1]),
-                                 d, sub.id))
+                                 d, sub.id, row=int(j)))
         return out
 
     def search(self, desc, submaps, k, with_global=False):
