@@ -280,7 +280,8 @@ def main() -> int:
     row(f"map build (71 demo images, fit + describe + partition + write)",
         f"{f['build_img_s']:.1f} images/s", images_per_s=round(f["build_img_s"], 2))
     row(f"frame -> fix, 640x480: {f['descriptor']} ({f['dim']}-D) + posterior fusion, "
-        f"VLM-like prior, {f['n']:,}-ref country-submap map", ms(f["frame"]), **f["frame"])
+        f"VLM-like prior, {f['n']:,}-ref country-submap map (no local features: "
+        f"verification off)", ms(f["frame"]), **f["frame"])
     row("  of which retrieval + fusion", ms(f["fix"]), **f["fix"])
     row(f"country partition of {qb['n']} refs ({qb['src']})",
         f"{qb['partition_s']:.1f} s, {qb['n_submaps']} submaps",
