@@ -31,6 +31,8 @@ log = logging.getLogger(__name__)
 #: smaller ones stay in the page cache after the first queries, and the advice (an open, a
 #: fadvise per row and a close per file) then costs ~0.5 ms per query for nothing
 PREFETCH_MIN_BYTES = 64 * 2 ** 20
+HIT_ROLES = ("coords", "ids")  # the files of a submap read for its hits ...
+POOLED_ROLES = ("index", "coords", "ids")  # ... and, for a pooled submap, its index file
 
 
 class ReferenceMap:
@@ -112,13 +114,16 @@ class ReferenceMap:
         lacks, merged in by distance (``submaps``' hits first on ties): the posterior fusion's
         region + global merge, from one pass in which no submap is searched twice
         (:mod:`vlm_vpr_ros.maps.search`)."""
-        sweep = SubmapPass(self.submaps, q, k, self.rerank_factor, self.small_submaps())
+        small = self.small_submaps()
+        sweep = SubmapPass(self.submaps, q, k, self.rerank_factor, small)
         dist, sub, row = sweep.rank_with_global(submaps) if with_global else \
             sweep.rank(submaps)[0]
         touched = np.unique(sub).tolist()
         advise = len(touched) > 1 and self.row_bytes(("coords", "ids")) >= PREFETCH_MIN_BYTES
-        for si in touched:  # the caller reads the hits' ids and positions next
-            self.submaps[si].check_files(("coords", "ids"))
+        for si in touched:  # the caller reads the hits' ids and positions next; a pooled
+            # submap's hits came from its copy in RAM: its index file is checked here too, so
+            # a submap changed on disk fails the queries it answers (maps/store.py)
+            self.submaps[si].check_files(POOLED_ROLES if small.pooled[si] else HIT_ROLES)
             if advise:  # cold pages of several files: reads queued at once
                 self.submaps[si].prefetch(np.sort(row[sub == si]), ("coords", "ids"))
         return list(zip(dist.tolist(), sub.tolist(), row.tolist()))

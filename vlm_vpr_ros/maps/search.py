@@ -191,10 +191,6 @@ class SubmapPass:
             # beyond the k-th distance a set has already (with ties: the bound is included)
             bound = max((_kth(d, self.k) for (d, _, _), pooled in parts if pooled),
                         default=None)
-            for si in sorted({si for _, pooled in parts for si in pooled}):
-                # the copy is in RAM, but a submap whose file changed or went missing is
-                # refused as if it were searched alone (maps/store.py: one stat each)
-                self.subs[si].check_files(("index",))
             small = _empty() if bound is None else self.small.hits(self.q, bound)
             return [self._with_small(hits, pooled, small) for hits, pooled in parts]
 
