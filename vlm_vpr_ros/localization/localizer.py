@@ -113,6 +113,7 @@ class Localizer:
             self._radius_km[i] = submap_radius_km(s)  # v2: from the manifest, no file read
         self._counts = np.array([s.count for s in self.map.submaps], dtype=np.float64)
         self._centroids = self.map.centroids
+        self._n_refs = int(self._counts.sum())
         # a fixed sample of reference positions: the support of the posterior's miss component
         rng = np.random.default_rng(0)
         per = np.ceil(BACKGROUND_SAMPLE * self._counts / max(1.0, self._counts.sum()))
@@ -224,7 +225,7 @@ class Localizer:
         searched_all = len(submaps) == len(self._all)
         # posterior on a small map: the region's top-p + the global top-p, one pass
         with_global = (cfg.fusion == "posterior" and prior is not None and not searched_all
-                       and self.map.n_references <= cfg.global_merge_max_refs)
+                       and self._n_refs <= cfg.global_merge_max_refs)
         cands = self.search(desc, submaps, cfg.top_p, with_global)
         searched_all = searched_all or with_global
         t1 = time.perf_counter()

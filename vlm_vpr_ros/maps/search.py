@@ -111,12 +111,20 @@ def _dim_of(sub: Any) -> int:
 
 
 class SmallSubmaps:
-    """The small flat/fp16 submaps of a submap list, copied into one FAISS index per kind."""
+    """The small flat/fp16 submaps of a submap list, copied into one FAISS index per kind
+    (``pool=False``: none; the facts a pass plans with only)."""
 
-    def __init__(self, submaps: Sequence[Any]) -> None:
+    def __init__(self, submaps: Sequence[Any], pool: bool = True) -> None:
         self.source = tuple(map(id, submaps))
+        #: facts of the submap list a pass plans with (numpy: no Python loop per submap)
+        self.live = np.array([s.count > 0 for s in submaps], dtype=bool)
+        self.is_pq = np.array([s.kind == "pq" for s in submaps], dtype=bool)
         self.pooled = np.zeros(len(submaps), dtype=bool)
         self.parts: list[tuple[str, Any, np.ndarray, np.ndarray]] = []
+        if pool:
+            self._build(submaps)
+
+    def _build(self, submaps: Sequence[Any]) -> None:
         small = sorted((s.count, i) for i, s in enumerate(submaps)
                        if s.kind in ("flat", "fp16") and 0 < s.count <= POOL_MAX_REFS)
         budget, fp16_refs = POOL_MAX_BYTES, 0
@@ -172,7 +180,8 @@ class SubmapPass:
     def __init__(self, submaps: Sequence[Any], q: np.ndarray, k: int,
                  rerank_factor: int, small: SmallSubmaps | None = None) -> None:
         self.subs, self.q, self.k = submaps, q, int(k)
-        self.small = small if small is not None and small.parts else None
+        self.facts = small if small is not None else SmallSubmaps(submaps, pool=False)
+        self.small = self.facts if self.facts.parts else None
         self.factor = int(rerank_factor)
         self.kk = self.k * max(1, self.factor)
         self._exact: dict[int, tuple[np.ndarray, np.ndarray]] = {}
@@ -184,9 +193,10 @@ class SubmapPass:
         """The top-``k`` of each set of submap indices, best first (ties by submap, row)."""
         plans = [self._plan(s) for s in sets]
         with one_faiss_thread():
-            picks = [self._pick(pq) for _, pq in plans]
+            picks = [self._pick(pq) for _, pq, _ in plans]
             self._rerank(picks)
-            parts = [self._gather(exact, pick) for (exact, _), pick in zip(plans, picks)]
+            parts = [self._gather(exact, pick, pooled)
+                     for (exact, _, pooled), pick in zip(plans, picks)]
             # the small submaps' pool: only rows that can still enter a ranking, i.e. not
             # beyond the k-th distance a set has already (with ties: the bound is included)
             bound = max((_kth(d, self.k) for (d, _, _), pooled in parts if pooled),
@@ -206,15 +216,16 @@ class SubmapPass:
                 np.concatenate([rr, gr[extra]])[order])
 
     # -- the searches (each submap once) ----------------------------------------------------------
-    def _plan(self, submaps: Sequence[int]) -> tuple[list[int], list[int]]:
-        """(exactly searched submaps, pq submaps ranked together) of a set: flat/fp16 submaps
-        alone; pq submaps pooled (a lone pq submap too: its pooled ranking is its own)."""
-        live = [int(si) for si in submaps if self.subs[si].count > 0]
-        pq = [si for si in live if self.subs[si].kind == "pq"]
-        if not pq:
-            return live, []
-        pooled = set(pq)
-        return [si for si in live if si not in pooled], pq
+    def _plan(self, submaps: Sequence[int]) -> tuple[list[int], list[int], list[int]]:
+        """(flat/fp16 submaps searched alone, pq submaps ranked together, small submaps in the
+        pool) of a set's live submaps, each in the set's order (a lone pq submap is ranked as a
+        pool of one: the same ranking)."""
+        idx = np.asarray(submaps, dtype=np.int64).reshape(-1)
+        idx = idx[self.facts.live[idx]]
+        pq = self.facts.is_pq[idx]
+        rest = idx[~pq]
+        pooled = self.facts.pooled[rest]
+        return rest[~pooled].tolist(), idx[pq].tolist(), rest[pooled].tolist()
 
     def _exact_hits(self, si: int) -> tuple[np.ndarray, np.ndarray]:
         """A flat/fp16 submap's top-``min(k, count)`` (FAISS's exact search)."""
@@ -265,15 +276,9 @@ class SubmapPass:
         order = np.argsort(self._keys)
         self._keys, self._dist = self._keys[order], self._dist[order]
 
-    def _gather(self, exact: list[int], pick: tuple[np.ndarray, np.ndarray]
-                ) -> tuple[Hits, list[int]]:
+    def _gather(self, exact: list[int], pick: tuple[np.ndarray, np.ndarray],
+                pooled: list[int]) -> tuple[Hits, list[int]]:
         """(hits of a set's submaps searched alone and of its pq pool, its pooled submaps)."""
-        pooled: list[int] = []
-        if self.small is not None:
-            mask = self.small.pooled
-            pooled = [si for si in exact if mask[si]]
-            if pooled:
-                exact = [si for si in exact if not mask[si]]
         hits = [self._exact_hits(si) for si in exact]
         owner, rows = pick
         pq_dist = self._dist[np.searchsorted(self._keys, _key(owner, rows))]
