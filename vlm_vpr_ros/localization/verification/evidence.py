@@ -88,3 +88,14 @@ def weigh(lat: np.ndarray, lon: np.ndarray, inliers: np.ndarray,
     ev = Evidence(winner, iw, cg, cu, 0.0, 0.0, order, int(gate.sum()))
     ev.score, ev.score_ungated = ev.ratio(floor, True), ev.ratio(floor, False)
     return ev
+
+
+def spread_radii(lat: np.ndarray, lon: np.ndarray, winner: int,
+                 quantiles: tuple[float, ...] = (0.68, 0.95)) -> tuple[float, ...]:
+    """Radii (m) around candidate ``winner`` holding the given shares of all the candidates'
+    positions: where the answer may be when geometry supports none of them better than the
+    others (the visually similar places, each as likely)."""
+    xyz = latlon_to_unit(np.asarray(lat, np.float64), np.asarray(lon, np.float64))
+    cos_d = np.clip(xyz @ xyz[winner], -1.0, 1.0)
+    dist_m = np.arccos(cos_d) * EARTH_RADIUS_KM * 1000.0
+    return tuple(float(np.quantile(dist_m, q, method="inverted_cdf")) for q in quantiles)
