@@ -135,10 +135,11 @@ def test_sf_night_fusion_never_loses_to_vpr_and_is_calibrated(sf, sf_queries):
     assert 55.0 <= c68 <= 80.0 and c95 >= 88.0
 
 
-def test_twin_city_prior_resolves_the_look_alikes(sf, sf_queries, sf_described, tmp_path):
-    """The SF database twice: true coordinates + look-alike copies (descriptors perturbed far
-    below their spread) shifted to Sydney. VPR alone cannot tell the twins apart; a prior up
-    to 25 km off must."""
+@pytest.fixture(scope="module")
+def twin(sf, sf_queries, tmp_path_factory):
+    """(twin map, SF map, SF -> Sydney shift, priors 0-25 km off the queries' truth): the SF
+    database twice, true coordinates + look-alike copies (descriptors perturbed far below their
+    spread) shifted to Sydney."""
     import math
 
     import numpy as np
@@ -147,8 +148,7 @@ def test_twin_city_prior_resolves_the_look_alikes(sf, sf_queries, sf_described, 
     from vlm_vpr_ros.maps.build_images import write_map_calibration
     from vlm_vpr_ros.maps.reference_map import ReferenceMap
 
-    root, map_dir = sf
-    desc, truth = sf_queries
+    _, map_dir = sf
     base = LocalizationPipeline.open(map_dir).map
     d0, c0, ids0 = base.all_descriptors(), base.all_coords(), base.all_ids()
     rng = np.random.default_rng(1)
@@ -159,13 +159,20 @@ def test_twin_city_prior_resolves_the_look_alikes(sf, sf_queries, sf_described, 
                         np.concatenate([c0, c0 + np.array(shift)]),
                         ids0 + [f"twin/{i}" for i in ids0], base.descriptor_identity,
                         base.descriptor_state, "kmeans", 16)
-    twin.save(tmp_path / "twin")
+    out = tmp_path_factory.mktemp("twin") / "twin"
+    twin.save(out)
     write_map_calibration(twin, np.concatenate([d0, twin_desc]),
                           np.concatenate([c0, c0 + np.array(shift)]))
-    twin = ReferenceMap.load(tmp_path / "twin")
-    n = len(desc)
     priors = [_offset(la, lo, rng.uniform(0.0, 25.0), rng.uniform(0, 2 * math.pi))
-              for la, lo in truth]
+              for la, lo in sf_queries[1]]
+    return ReferenceMap.load(out), base, shift, priors
+
+
+def test_twin_city_prior_resolves_the_look_alikes(sf, sf_queries, sf_described, twin):
+    """VPR alone cannot tell the twins apart; a prior up to 25 km off must."""
+    desc, truth = sf_queries
+    twin, base, shift, priors = twin
+    n = len(desc)
     vpr_hits, _, _, vpr_far = _run(twin, desc, truth, [None] * n, fold=shift, fusion="paper")
     hits, c68, c95, far = _run(twin, desc, truth, priors, fold=shift)
     paper_hits, _, _, paper_far = _run(twin, desc, truth, priors, fold=shift, fusion="paper")
@@ -222,6 +229,33 @@ def _twin_verified(twin, base, sf_described, priors, fused_hits, shift):
     assert rows["priors on the wrong continent"][1] == 0
     assert ReferenceMap.load(twin.path).manifest["local_features"]["n_keypoints"] == \
         2 * base.manifest["local_features"]["n_keypoints"]
+
+
+def test_one_pass_retrieval_answers_as_two_searches(sf, sf_queries, twin):
+    """Issue 23: the posterior's region + global top-p from one pass gives the same candidates
+    (ids, distances, order) and the same answers as the two searches it replaced, on SF night
+    and on the twin map, for wide (VLM-like) and tight (sigma 0.5 / 3 km) priors 0-25 km off."""
+    import math
+
+    import numpy as np
+    from two_search import TwoSearchLocalizer, assert_same_answers
+
+    from vlm_vpr_ros.localization.localizer import Localizer, LocalizerConfig
+    from vlm_vpr_ros.priors.base import Prior, PriorResult
+
+    desc, truth = sf_queries
+    rng = np.random.default_rng(2)
+    off = [_offset(la, lo, rng.uniform(0.0, 25.0), rng.uniform(0, 2 * math.pi))
+           for la, lo in truth]
+    priors = [None if i % 7 == 6 else PriorResult(
+        Prior(p[0], p[1], "test", (None, 0.5, 3.0)[i % 3]), "test") for i, p in enumerate(off)]
+    merged = 0
+    for ref_map in (LocalizationPipeline.open(sf[1]).map, twin[0]):
+        for cfg in (LocalizerConfig(), LocalizerConfig(top_p=5),
+                    LocalizerConfig(fusion="paper")):
+            merged += assert_same_answers(Localizer(ref_map, cfg),
+                                          TwoSearchLocalizer(ref_map, cfg), desc, priors)
+    assert merged >= 40  # the tight priors' regions are a few submaps: the merge ran
 
 
 # -- verified fixes (issue 18, docs/verification.md) ----------------------------------------------

@@ -5,18 +5,22 @@ Two fusion modes (docs/fusion.md):
 * ``posterior`` (default): the prior's confidence region (a quantile of the VLM error model)
   picks every submap it intersects, within a budget of references; on maps small enough
   (``global_merge_max_refs``) the global top-p is merged in, so a prior can never hide the best
-  visual match. Candidates are scored by visual likelihood + prior likelihood
-  (:mod:`vlm_vpr_ros.localization.fusion.posterior`) and the estimate is the geographic vote's winner.
+  visual match — from the same pass over the map (no submap is searched twice, so this costs
+  one global search, :mod:`vlm_vpr_ros.maps.search`). Candidates are scored by visual
+  likelihood + prior likelihood (:mod:`vlm_vpr_ros.localization.fusion.posterior`) and the
+  estimate is the geographic vote's winner.
 * ``paper``: the method of Waheed et al. — the one submap nearest to the prior, top-p, re-rank by
   haversine distance to the prior (``use_submaps`` / ``rerank`` / ``n_submaps`` ablations).
 
 In both modes ``uncertainty_m`` is the calibrated radius that holds the true position with 68 %
 probability and ``radius95_m`` the 95 % one, from the posterior over the candidates
-(:mod:`vlm_vpr_ros.localization.fusion.calibration`). Always finite: capped at half the Earth's circumference.
+(:mod:`vlm_vpr_ros.localization.fusion.calibration`). Always finite: capped at half the Earth's
+circumference.
 """
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import time
@@ -72,6 +76,13 @@ class LocalizerConfig:
                 raise ConfigError(f"{name} must be a positive finite number")
 
 
+@functools.lru_cache(maxsize=256)
+def region_radius_km(model: ErrorModel, quantile: float) -> float:
+    """The prior's confidence radius: a quantile of its error model, found by bisection (80
+    CDF evaluations, 1.4 ms: cached per model, as the region is chosen on every query)."""
+    return model.quantile(quantile)
+
+
 def robust_scale(l2: np.ndarray) -> float:
     """Visual scale of one query for maps without calibration: the robust spread (1.4826 MAD)
     of its candidates' squared distances, so one exact match does not inflate it."""
@@ -101,6 +112,8 @@ class Localizer:
         for i, s in enumerate(self.map.submaps):
             self._radius_km[i] = submap_radius_km(s)  # v2: from the manifest, no file read
         self._counts = np.array([s.count for s in self.map.submaps], dtype=np.float64)
+        self._centroids = self.map.centroids
+        self._n_refs = int(self._counts.sum())
         # a fixed sample of reference positions: the support of the posterior's miss component
         rng = np.random.default_rng(0)
         per = np.ceil(BACKGROUND_SAMPLE * self._counts / max(1.0, self._counts.sum()))
@@ -139,9 +152,9 @@ class Localizer:
             if not pieces:
                 flags.append("prior_not_in_map")
             else:
-                near = nearest_centroids(prior.lat, prior.lon, self.map.centroids[pieces], 1)
+                near = nearest_centroids(prior.lat, prior.lon, self._centroids[pieces], 1)
                 chosen.append(pieces[int(near[0])])
-        for i in nearest_centroids(prior.lat, prior.lon, self.map.centroids, n + len(chosen)):
+        for i in nearest_centroids(prior.lat, prior.lon, self._centroids, n + len(chosen)):
             if len(chosen) >= n:
                 break
             if int(i) not in chosen:
@@ -150,34 +163,40 @@ class Localizer:
 
     def _region_submaps(self, prior: Prior) -> tuple[list[int], list[str]]:
         """Submaps intersecting the prior's confidence region, nearest first, within budget."""
-        radius = self.error_model_for(prior).quantile(self.config.prior_quantile)
-        cents = self.map.centroids
+        radius = region_radius_km(self.error_model_for(prior), self.config.prior_quantile)
+        cents = self._centroids
         gap = np.atleast_1d(haversine_km(prior.lat, prior.lon, cents[:, 0], cents[:, 1]))
         gap = np.maximum(gap - self._radius_km, 0.0)
-        order = [int(i) for i in np.argsort(gap, kind="stable") if self._counts[i] > 0]
-        chosen, total, flags = [], 0.0, []
-        for i in order:
-            if gap[i] > radius and chosen:
-                break
-            if chosen and total + self._counts[i] > self.config.max_region_refs:
-                flags.append("region_budget")
-                break
-            chosen.append(i)
-            total += self._counts[i]
-        if order and gap[order[0]] > radius:
+        order = np.argsort(gap, kind="stable")
+        order = order[self._counts[order] > 0]
+        if not len(order):
+            return [], []
+        # nearest first: the nearest always; then up to the first submap outside the region
+        # (no flag) or over the budget of references (flag), whichever comes first
+        g = gap[order]
+        outside = np.flatnonzero(g[1:] > radius)
+        over = np.flatnonzero(np.cumsum(self._counts[order])[1:] > self.config.max_region_refs)
+        stop_out = int(outside[0]) + 1 if len(outside) else len(order)
+        stop_over = int(over[0]) + 1 if len(over) else len(order)
+        flags = ["region_budget"] if stop_over < stop_out else []
+        if g[0] > radius:
             flags.append("prior_not_in_map")
-        return chosen, flags
+        return order[:min(stop_out, stop_over)].tolist(), flags
 
     # -- retrieval ------------------------------------------------------------------------------
-    def search(self, desc: np.ndarray, submaps: list[int], k: int) -> list[Candidate]:
-        """Top-``k`` references by squared L2 over the given submaps (exact, merged)."""
+    def search(self, desc: np.ndarray, submaps: list[int], k: int,
+               with_global: bool = False) -> list[Candidate]:
+        """Top-``k`` references by squared L2 over the given submaps (exact, merged).
+        ``with_global``: plus the map's global top-``k`` references not among them, merged by
+        distance, from the same pass (no submap is searched twice; see
+        :meth:`ReferenceMap.search_submaps`)."""
         q = np.ascontiguousarray(np.asarray(desc, dtype=np.float32).reshape(1, -1))
         if q.shape[1] != self.map.dim:
             raise DescriptorError(f"query descriptor has dim {q.shape[1]}, the map has "
                                   f"{self.map.dim}")
-        found = self.map.search_submaps(list(submaps), q, k)  # exact; pq: + re-rank
+        found = self.map.search_submaps(list(submaps), q, k, with_global)  # pq: + re-rank
         out = []
-        for d, si, j in found[:k]:
+        for d, si, j in found:
             sub = self.map.submaps[si]
             out.append(Candidate(sub.ids[j], float(sub.coords[j, 0]), float(sub.coords[j, 1]),
                                  d, sub.id, row=int(j)))
@@ -204,14 +223,11 @@ class Localizer:
         submaps, sflags = self.select_submaps(prior)
         flags += sflags
         searched_all = len(submaps) == len(self._all)
-        cands = self.search(desc, submaps, cfg.top_p)
-        if (cfg.fusion == "posterior" and prior is not None and not searched_all
-                and self.map.n_references <= cfg.global_merge_max_refs):
-            seen = {(c.submap, c.ref_id) for c in cands}
-            extra = [c for c in self.search(desc, self._all, cfg.top_p)
-                     if (c.submap, c.ref_id) not in seen]
-            cands = sorted(cands + extra, key=lambda c: c.l2_sq)
-            searched_all = True
+        # posterior on a small map: the region's top-p + the global top-p, one pass
+        with_global = (cfg.fusion == "posterior" and prior is not None and not searched_all
+                       and self._n_refs <= cfg.global_merge_max_refs)
+        cands = self.search(desc, submaps, cfg.top_p, with_global)
+        searched_all = searched_all or with_global
         t1 = time.perf_counter()
         if not cands:
             return self._no_match(prior, prior_result, flags, (t1 - t0) * 1e3)

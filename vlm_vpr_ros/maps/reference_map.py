@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import os
+import threading
 import time
 from pathlib import Path
 from typing import Any, Mapping
@@ -21,9 +22,17 @@ from vlm_vpr_ros.descriptors import GlobalDescriptor, create_descriptor
 from vlm_vpr_ros.errors import MapError
 from vlm_vpr_ros.maps import indexes, store, v1
 from vlm_vpr_ros.maps.format import check_descriptor_identity, load_state, read_manifest
+from vlm_vpr_ros.maps.search import SmallSubmaps, SubmapPass
 from vlm_vpr_ros.maps.submap import Submap
 
 log = logging.getLogger(__name__)
+
+#: read-ahead advice for the hits' coords and ids only on maps where those files are this big:
+#: smaller ones stay in the page cache after the first queries, and the advice (an open, a
+#: fadvise per row and a close per file) then costs ~0.5 ms per query for nothing
+PREFETCH_MIN_BYTES = 64 * 2 ** 20
+HIT_ROLES = ("coords", "ids")  # the files of a submap read for its hits ...
+POOLED_ROLES = ("index", "coords", "ids")  # ... and, for a pooled submap, its index file
 
 
 class ReferenceMap:
@@ -40,6 +49,9 @@ class ReferenceMap:
         self._groups: dict[str, list[int]] = {}
         for i, s in enumerate(submaps):
             self._groups.setdefault(s.group or s.id, []).append(i)
+        self._small: SmallSubmaps | None = None  # see small_submaps()
+        self._cache: dict = {}  # row_bytes()
+        self._small_lock = threading.Lock()
         #: pq submaps re-rank the top k·rerank_factor PQ candidates exactly (tunable per query)
         self.rerank_factor = int(manifest.get("index_params", {}).get(
             "rerank_factor", indexes.DEFAULT_RERANK_FACTOR))
@@ -90,44 +102,55 @@ class ReferenceMap:
         log.debug("opened %d submaps in %.2f s", len(self.submaps), time.perf_counter() - t0)
         return self
 
-    def search_submaps(self, submaps: list[int], q: np.ndarray,
-                       k: int) -> list[tuple[float, int, int]]:
+    def search_submaps(self, submaps: list[int], q: np.ndarray, k: int,
+                       with_global: bool = False) -> list[tuple[float, int, int]]:
         """Top-``k`` (squared L2, submap, row) over several submaps, best first (ties by
         submap, row). flat/fp16 submaps are searched exactly, one by one; pq submaps together,
         as one pq index over their union would be: PQ candidates from each (serially: threads
         measured slower, OpenMP teams contend), then only the best ``k·rerank_factor`` of them
-        all are re-ranked exactly (one re-rank per query, not one per submap)."""
-        found: list[tuple[float, int, int]] = []
-        live = [si for si in submaps if self.submaps[si].count > 0]
-        pq = [si for si in live if self.submaps[si].kind == "pq"] if len(live) > 1 else []
-        for si in live:
-            if si not in pq:
-                dist, idx = self.search_submap(si, q, min(k, self.submaps[si].count))
-                found += [(float(d), si, int(j)) for d, j in zip(dist, idx) if j >= 0]
-        if pq:
-            kk = k * max(1, self.rerank_factor)
-            stage1 = [self.submaps[si].pq_candidates(q, kk) for si in pq]
-            approx = np.concatenate([d for d, _ in stage1])
-            owner = np.concatenate([np.full(len(r), si) for si, (_, r) in zip(pq, stage1)])
-            rows = np.concatenate([r for _, r in stage1])
-            if len(approx) > kk:
-                best = np.argpartition(approx, kk - 1)[:kk]
-                owner, rows = owner[best], rows[best]
-            picked = [(si, np.sort(rows[owner == si])) for si in np.unique(owner).tolist()]
-            if len(picked) > 1:  # cold pages of many files: all reads queued at once (one
-                for si, r in picked:  # submap: measured no gain, only the advice's cost)
-                    self.submaps[si].prefetch(r, ("vectors",))
-            for si, r in picked:
-                dist = self.submaps[si].exact_sq_l2(r, q)
-                found += [(float(d), si, int(j)) for d, j in zip(dist, r)]
-        found.sort()
-        found = found[:k]
-        by_sub: dict[int, list[int]] = {}
-        for _, si, j in found:  # the caller reads their ids and positions next
-            by_sub.setdefault(si, []).append(j)
-        for si, r in by_sub.items() if len(by_sub) > 1 else ():
-            self.submaps[si].prefetch(np.sort(np.array(r)), ("coords", "ids"))
-        return found
+        all are re-ranked exactly (one re-rank per query, not one per submap).
+
+        ``with_global``: also the map's global top-``k`` hits that the ranking of ``submaps``
+        lacks, merged in by distance (``submaps``' hits first on ties): the posterior fusion's
+        region + global merge, from one pass in which no submap is searched twice
+        (:mod:`vlm_vpr_ros.maps.search`)."""
+        small = self.small_submaps()
+        sweep = SubmapPass(self.submaps, q, k, self.rerank_factor, small)
+        dist, sub, row = sweep.rank_with_global(submaps) if with_global else \
+            sweep.rank(submaps)[0]
+        touched = np.unique(sub).tolist()
+        advise = len(touched) > 1 and self.row_bytes(("coords", "ids")) >= PREFETCH_MIN_BYTES
+        for si in touched:  # the caller reads the hits' ids and positions next; a pooled
+            # submap's hits came from its copy in RAM: its index file is checked here too, so
+            # a submap changed on disk fails the queries it answers (maps/store.py)
+            self.submaps[si].check_files(POOLED_ROLES if small.pooled[si] else HIT_ROLES)
+            if advise:  # cold pages of several files: reads queued at once
+                self.submaps[si].prefetch(np.sort(row[sub == si]), ("coords", "ids"))
+        return list(zip(dist.tolist(), sub.tolist(), row.tolist()))
+
+    def row_bytes(self, roles: tuple[str, ...]) -> int:
+        """Bytes on disk of the submaps' files in ``roles`` (v2 manifest; 0 in memory)."""
+        key = ("row_bytes", roles)
+        if key not in self._cache:
+            files = self.manifest.get("files") or {}
+            self._cache[key] = sum(int((files.get(rel) or {}).get("bytes", 0))
+                                   for entry in self.manifest.get("submaps", [])
+                                   if isinstance(entry, dict)
+                                   for role, rel in (entry.get("files") or {}).items()
+                                   if role in roles)
+        return self._cache[key]
+
+    def small_submaps(self) -> SmallSubmaps:
+        """The small submaps' pooled copy (built on the first search, :mod:`.search`)."""
+        small = self._small
+        if small is None or small.source != tuple(map(id, self.submaps)):
+            with self._small_lock:
+                small = self._small
+                if small is None or small.source != tuple(map(id, self.submaps)):
+                    small = self._small = SmallSubmaps(self.submaps)
+                    log.debug("pooled %d small submaps (%d references) for one-call search",
+                              int(small.pooled.sum()), small.n_refs)
+        return small
 
     def all_descriptors(self) -> np.ndarray:
         """All descriptors (submap order): reconstructed from flat/fp16 indices, or the fp16

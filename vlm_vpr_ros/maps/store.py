@@ -17,11 +17,13 @@ file's content fingerprint (:func:`~vlm_vpr_ros.maps.format.check_content`: smal
 large ones by sampled pages), so files swapped between submaps or rewritten with the same size
 are refused. A submap is opened on first use (sizes checked again before mapping). A file
 truncated while the map is open would make the next page access raise SIGBUS (a crash Python
-cannot catch), so every search first ``stat``s the submap's files and raises :class:`MapError`
-instead; a file whose modification or change time moved since the check is checked again, and a
-submap whose content changed under a running process is refused from then on (every query that
-needs it fails, flagged) until the map is reloaded. The full sha256 pass is :func:`~vlm_vpr_ros.maps.format.verify_files`
-(``vlm-vpr map verify``, node parameter ``verify_map``).
+cannot catch), so every search first ``stat``s the files it reads (the index, pq re-rank
+vectors; coords and ids of the submaps that hold hits, before they are read) and raises
+:class:`MapError` instead; a file whose modification or change time moved since the check is
+checked again, and a submap whose content changed under a running process is refused from then
+on (every query that needs it fails, flagged) until the map is reloaded. The full sha256 pass
+is :func:`~vlm_vpr_ros.maps.format.verify_files` (``vlm-vpr map verify``, node parameter
+``verify_map``).
 """
 
 from __future__ import annotations
@@ -49,6 +51,8 @@ from vlm_vpr_ros.maps.submap import submap_radius_km
 log = logging.getLogger(__name__)
 
 VERSION = 2
+#: the files a search of a submap of each kind reads (coords and ids: read for the hits only)
+SEARCH_ROLES = {"flat": ("index",), "fp16": ("index",), "pq": ("index", "vectors")}
 
 
 # -- writing ----------------------------------------------------------------------------------
@@ -166,6 +170,8 @@ class LazySubmap:
         self._seen: dict[str, tuple[int, int, int, int]] = {}
         self._inodes: dict[str, tuple[int, int]] = {}
         self._refused = ""  # why this submap is refused (content changed under us)
+        self._stat_paths: list[tuple[str, str, int, str]] | None = None  # role, rel, bytes, path
+        self._prefetch_at: dict[str, tuple[str, int, int]] | None = None  # see prefetch()
         self._lock = threading.Lock()
         self._open: tuple[Any, np.ndarray, IdView, np.ndarray | None] | None = None
         self._coords: np.ndarray | None = None  # mapped without opening the index
@@ -178,17 +184,23 @@ class LazySubmap:
                 st = os.stat(self.root / rel)
                 self._seen[rel] = (st.st_dev, st.st_ino, st.st_mtime_ns, st.st_ctime_ns)
 
-    def check_files(self) -> None:
+    def check_files(self, roles: tuple[str, ...] | None = None) -> None:
         """MapError when a file is missing, its size differs from the manifest, or it was
         modified since its content was checked and no longer matches its fingerprint (the
         submap is then refused until the map is reloaded). For an open submap, a file replaced
         by another one (new inode, e.g. an atomic map update) is not an error: the mapping keeps
-        the old file alive."""
+        the old file alive. ``roles``: only these files (index, vectors, coords, ids: what the
+        caller reads next); all by default."""
         if self._refused:
             raise MapError(self._refused)
-        for rel, size in self._sizes.items():
+        if self._stat_paths is None:  # joined once: a pathlib join per file and search cost
+            self._stat_paths = [(role, rel, self._sizes[rel], os.fspath(self.root / rel))
+                                for role, rel in self.files.items()]  # 6x the stat itself
+        for role, rel, size, path in self._stat_paths:
+            if roles is not None and role not in roles:
+                continue
             try:
-                st = os.stat(self.root / rel)
+                st = os.stat(path)
             except OSError as exc:
                 if self._open is not None:
                     continue  # unlinked: the mapping keeps the data alive
@@ -290,13 +302,17 @@ class LazySubmap:
         return self.opened()[3]
 
     def search(self, q: np.ndarray, k: int, factor: int) -> tuple[np.ndarray, np.ndarray]:
+        """Top-``k`` (squared L2, row). Checks the files the search reads (the index; pq: and
+        the re-rank vectors); the caller checks coords and ids before reading the hits' rows
+        (``ReferenceMap.search_submaps``): one stat per flat submap and query, not three."""
         index, _, _, rerank = self.opened()
-        self.check_files()
+        self.check_files(SEARCH_ROLES[self.kind])
         return indexes.search(index, self.kind, rerank, q, k, factor)
 
     def pq_candidates(self, q: np.ndarray, kk: int) -> tuple[np.ndarray, np.ndarray]:
+        """Stage 1 of a pq search; checks the index and the vectors the re-rank reads next."""
         index = self.opened()[0]
-        self.check_files()
+        self.check_files(SEARCH_ROLES["pq"])
         return indexes.pq_candidates(index, q, kk)
 
     def exact_sq_l2(self, rows: np.ndarray, q: np.ndarray) -> np.ndarray:
@@ -305,18 +321,17 @@ class LazySubmap:
     def prefetch(self, rows: np.ndarray, what: tuple[str, ...] = ("vectors",)) -> None:
         """Start reading these rows of the memory-mapped files in ``what`` (roles: vectors,
         coords, ids) in the background; the next access then finds them in the page cache."""
-        opened = self.opened()
-        arrays = {"coords": opened[1], "ids": opened[2]._raw, "vectors": opened[3]}
+        if self._prefetch_at is None:  # (path, row bytes, data offset) per role, once: a
+            opened = self.opened()  # stat and a path join per call cost more than the advice
+            arrays = {"coords": opened[1], "ids": opened[2]._raw, "vectors": opened[3]}
+            self._prefetch_at = {
+                role: (os.fspath(self.root / rel), arr.strides[0],
+                       self._sizes[rel] - arr.nbytes)  # data to the end (npy_data_offset)
+                for role, rel in self.files.items() if (arr := arrays.get(role)) is not None}
         for role in what:
-            rel = self.files.get(role)
-            arr = arrays.get(role)
-            if rel is not None and arr is not None:
-                path = self.root / rel
-                try:
-                    offset = npy_data_offset(path, arr)
-                except OSError:
-                    continue  # the search reports a missing file
-                prefetch_rows(path, arr.strides[0], rows, offset)
+            at = self._prefetch_at.get(role)
+            if at is not None:
+                prefetch_rows(at[0], at[1], rows, at[2])
 
     def vectors(self) -> np.ndarray:
         index, _, _, rerank = self.opened()
@@ -344,7 +359,7 @@ def _load_array(root: Path, rel: str, shape: tuple[int, ...], kind: str) -> np.n
     return arr
 
 
-def prefetch_rows(path: Path, row_bytes: int, rows: np.ndarray, offset: int) -> None:
+def prefetch_rows(path: Path | str, row_bytes: int, rows: np.ndarray, offset: int) -> None:
     """Ask the kernel to read rows ``rows`` (``row_bytes`` each, data at ``offset``) of the file
     at ``path`` now: ``posix_fadvise(WILLNEED)`` per row queues the reads without waiting, so a
     cold query then waits for about one round of disk reads, not one read per page fault in

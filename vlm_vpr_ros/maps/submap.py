@@ -39,6 +39,9 @@ class Submap:
     def exact_sq_l2(self, rows: np.ndarray, q: np.ndarray) -> np.ndarray:
         return indexes.exact_sq_l2(self.rerank, rows, q)
 
+    def check_files(self, roles: tuple[str, ...] | None = None) -> None:
+        """In memory: no files to check (see ``LazySubmap.check_files``)."""
+
     def prefetch(self, rows: np.ndarray, what: tuple[str, ...]) -> None:
         """In memory: nothing to read ahead (see ``LazySubmap.prefetch``)."""
 

@@ -1,0 +1,301 @@
+"""One query's search over several submaps of a map: every submap is searched at most once.
+
+The posterior fusion needs two rankings per query: the top-k over the prior's region and, on maps
+up to ``global_merge_max_refs`` references, the global top-k over the whole map. Two separate
+searches scanned the region's references twice (about two global searches per query with a
+VLM's wide prior). :class:`SubmapPass` remembers what it has searched for one query:
+
+* flat / fp16 submaps: FAISS's exact top-``min(k, count)`` of the submap (one scan each);
+* pq submaps: stage 1, the ``k·rerank_factor`` best rows by PQ-approximate distance (codes in
+  RAM, one fast scan each), and the exact fp16 distance of every row a ranking picked (each row
+  re-ranked once, however many rankings picked it).
+
+Any set of submaps is then ranked from these results exactly as a search of that set alone
+ranks it: flat/fp16 hits merged by (squared L2, submap, row); the pq candidates of the set's
+submaps pooled, the best ``k·rerank_factor`` of them by approximate distance (in the set's
+order, as one pq index over their union would pick them) re-ranked exactly. The region's and
+the global ranking therefore come from one pass over the map and equal two separate searches
+(tests/test_fusion_search.py checks that against the two-search implementation).
+
+Merging is numpy, not one Python tuple per hit. A country partition has hundreds of small
+submaps (215 of the 230 of the 100k MP-16 map hold <= 1,024 references, 24 % of them), and a
+FAISS call per small submap costs more than its scan: :class:`SmallSubmaps` keeps a copy of
+the small flat/fp16 submaps (<= ``POOL_MAX_REFS`` references each, at most ``POOL_MAX_BYTES``:
+49 MB on that map at 512-D, 24 MB at 256-D) in one index per kind, scanned with one call that
+returns the rows within the k-th distance the pass has already found elsewhere (all rows when
+it has none) — the same distances as each submap's own search (same FAISS kernel; checked in
+tests/test_fusion_search.py). Taking those rows instead of each small submap's
+top-``min(k, count)`` changes no ranking: FAISS keeps the lowest rows on ties, so a row beyond
+its submap's top-k has k rows of that submap ahead of it. Measured on the maps of
+``benchmarks/bench_core.py`` (512-D, one process, queries interleaved, load ~3): posterior with
+a VLM-like prior / one global search 1.12x with the pool of submaps up to 1,024 references,
+1.18x with a pool up to 256.
+
+A pass runs FAISS on one OpenMP thread (this thread only; restored afterwards): FAISS splits a
+single query's scan of a large index over an OpenMP team, and a team's wake-up costs a
+scheduler round when the cores are busy — on this 2-core machine at load 5, a 100k-reference
+flat search took 72 ms with the default 2 threads and 20 ms with one, and the 230 country
+submaps 25 ms against 6 ms (``benchmarks/bench_core.py`` prints both settings for the flat
+search). Batch work (building, recall measurement) keeps FAISS's threads.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+from typing import Any, Iterator, Sequence
+
+import numpy as np
+
+from vlm_vpr_ros.maps.indexes import make_index
+
+#: ranked hits: (squared L2 float32, submap index int64, row int64), best first
+Hits = tuple[np.ndarray, np.ndarray, np.ndarray]
+
+_ROW_BITS = 40  # (submap, row) packed in one int64 key: rows < 2**40, submaps < 2**23
+#: submaps of at most this many references are scanned together (module docstring)
+POOL_MAX_REFS = 1024
+POOL_MAX_BYTES = 64 * 2 ** 20  # the pooled copy's size limit (smallest submaps first)
+POOL_MAX_FP16_REFS = 8192  # fp16 is searched for all its rows: a heap that grows with them
+
+
+def _empty() -> Hits:
+    return np.zeros(0, np.float32), np.zeros(0, np.int64), np.zeros(0, np.int64)
+
+
+def _key(submap: np.ndarray, row: np.ndarray) -> np.ndarray:
+    return (submap.astype(np.int64) << _ROW_BITS) | row.astype(np.int64)
+
+
+@contextlib.contextmanager
+def one_faiss_thread() -> Iterator[None]:
+    """FAISS on one OpenMP thread in this block, on this thread (OpenMP's thread count is a
+    per-thread setting: other threads are not affected)."""
+    import faiss
+
+    before = faiss.omp_get_max_threads()
+    if before == 1:
+        yield
+        return
+    faiss.omp_set_num_threads(1)
+    try:
+        yield
+    finally:
+        faiss.omp_set_num_threads(before)
+
+
+def _kth(dist: np.ndarray, k: int) -> float:
+    """The k-th smallest distance; infinity when there are fewer (or it is NaN)."""
+    if len(dist) < k:
+        return math.inf
+    kth = float(np.partition(dist, k - 1)[k - 1])
+    return kth if kth == kth else math.inf
+
+
+def top_k(dist: np.ndarray, submap: np.ndarray, row: np.ndarray, k: int) -> Hits:
+    """The ``k`` best hits by (distance, submap, row); a NaN distance ranks last."""
+    if k <= 0:
+        return _empty()
+    if len(dist) > k:
+        kth = np.partition(dist, k - 1)[k - 1]
+        keep = np.flatnonzero(~(dist > kth))  # ~(>): NaN k-th keeps everything
+        dist, submap, row = dist[keep], submap[keep], row[keep]
+    order = np.lexsort((row, submap, dist))[:k]
+    return dist[order], submap[order], row[order]
+
+
+def _dim_of(sub: Any) -> int:
+    """A submap's descriptor size, without opening a lazily opened submap."""
+    dim = getattr(sub, "dim", None)
+    return int(dim) if dim is not None else int(sub.index.d)
+
+
+class SmallSubmaps:
+    """The small flat/fp16 submaps of a submap list, copied into one FAISS index per kind
+    (``pool=False``: none; the facts a pass plans with only)."""
+
+    def __init__(self, submaps: Sequence[Any], pool: bool = True) -> None:
+        self.source = tuple(map(id, submaps))
+        #: facts of the submap list a pass plans with (numpy: no Python loop per submap)
+        self.live = np.array([s.count > 0 for s in submaps], dtype=bool)
+        self.is_pq = np.array([s.kind == "pq" for s in submaps], dtype=bool)
+        self.pooled = np.zeros(len(submaps), dtype=bool)
+        self.parts: list[tuple[str, Any, np.ndarray, np.ndarray]] = []
+        if pool:
+            self._build(submaps)
+
+    def _build(self, submaps: Sequence[Any]) -> None:
+        small = sorted((s.count, i) for i, s in enumerate(submaps)
+                       if s.kind in ("flat", "fp16") and 0 < s.count <= POOL_MAX_REFS)
+        budget, fp16_refs = POOL_MAX_BYTES, 0
+        members: dict[str, list[tuple[int, np.ndarray]]] = {"flat": [], "fp16": []}
+        for n, i in small:
+            kind = submaps[i].kind
+            fp16_refs += n if kind == "fp16" else 0
+            budget -= n * _dim_of(submaps[i]) * (4 if kind == "flat" else 2)
+            if budget < 0:
+                break
+            if kind == "flat" or fp16_refs <= POOL_MAX_FP16_REFS:
+                members[kind].append((i, submaps[i].vectors()))  # float32 (fp16: exact)
+        for kind, got in members.items():
+            if len(got) < 2:
+                continue  # one submap: nothing to save
+            got.sort(key=lambda m: m[0])
+            index = make_index(kind, np.concatenate([v for _, v in got]))
+            owner = np.repeat([i for i, _ in got], [len(v) for _, v in got]).astype(np.int64)
+            row = np.concatenate([np.arange(len(v), dtype=np.int64) for _, v in got])
+            self.parts.append((kind, index, owner, row))
+            self.pooled[[i for i, _ in got]] = True
+
+    @property
+    def n_refs(self) -> int:
+        return sum(len(owner) for _, _, owner, _ in self.parts)
+
+    def hits(self, q: np.ndarray, bound: float = math.inf) -> Hits:
+        """(squared L2, submap, row) of every pooled reference at most ``bound`` away; flat: a
+        range search (no top-k heap; FAISS keeps distances below its radius: the next float32
+        above ``bound``), fp16: a search for all rows (its range search uses another kernel,
+        whose distances differ in the last bit for some dims)."""
+        dist, sub, row = [], [], []
+        radius = float(np.nextafter(np.float32(bound), np.float32(np.inf)))
+        for kind, index, owner, rows in self.parts:
+            if kind == "flat":
+                _, d, idx = index.range_search(q, radius)
+            else:
+                d, idx = index.search(q, index.ntotal)
+                keep = (idx[0] >= 0) & ~(d[0] > bound)
+                d, idx = d[0][keep], idx[0][keep]
+            dist.append(np.asarray(d, np.float32))
+            sub.append(owner[idx])
+            row.append(rows[idx])
+        if not dist:
+            return _empty()
+        return np.concatenate(dist), np.concatenate(sub), np.concatenate(row)
+
+
+class SubmapPass:
+    """The searches of one (1, dim) float32 query over ``submaps`` (a map's submap list), for
+    top-``k`` rankings of any sets of them; see the module docstring."""
+
+    def __init__(self, submaps: Sequence[Any], q: np.ndarray, k: int,
+                 rerank_factor: int, small: SmallSubmaps | None = None) -> None:
+        self.subs, self.q, self.k = submaps, q, int(k)
+        self.facts = small if small is not None else SmallSubmaps(submaps, pool=False)
+        self.small = self.facts if self.facts.parts else None
+        self.factor = int(rerank_factor)
+        self.kk = self.k * max(1, self.factor)
+        self._exact: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._stage1: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._keys = np.zeros(0, np.int64)  # re-ranked pq rows (sorted keys) ...
+        self._dist = np.zeros(0, np.float32)  # ... and their exact squared L2
+
+    def rank(self, *sets: Sequence[int]) -> list[Hits]:
+        """The top-``k`` of each set of submap indices, best first (ties by submap, row)."""
+        plans = [self._plan(s) for s in sets]
+        with one_faiss_thread():
+            picks = [self._pick(pq) for _, pq, _ in plans]
+            self._rerank(picks)
+            parts = [self._gather(exact, pick, pooled)
+                     for (exact, _, pooled), pick in zip(plans, picks)]
+            # the small submaps' pool: only rows that can still enter a ranking, i.e. not
+            # beyond the k-th distance a set has already (with ties: the bound is included)
+            bound = max((_kth(d, self.k) for (d, _, _), pooled in parts if pooled),
+                        default=None)
+            small = _empty() if bound is None else self.small.hits(self.q, bound)
+            return [self._with_small(hits, pooled, small) for hits, pooled in parts]
+
+    def rank_with_global(self, region: Sequence[int]) -> Hits:
+        """The region's top-``k`` and, merged in, the global top-``k`` hits the region's ranking
+        lacks: ordered by distance, region first on ties (what the two searches and a stable
+        merge of their candidates gave)."""
+        (rd, rs, rr), (gd, gs, gr) = self.rank(region, range(len(self.subs)))
+        extra = ~np.isin(_key(gs, gr), _key(rs, rr))
+        d = np.concatenate([rd, gd[extra]])
+        order = np.argsort(d, kind="stable")
+        return (d[order], np.concatenate([rs, gs[extra]])[order],
+                np.concatenate([rr, gr[extra]])[order])
+
+    # -- the searches (each submap once) ----------------------------------------------------------
+    def _plan(self, submaps: Sequence[int]) -> tuple[list[int], list[int], list[int]]:
+        """(flat/fp16 submaps searched alone, pq submaps ranked together, small submaps in the
+        pool) of a set's live submaps, each in the set's order (a lone pq submap is ranked as a
+        pool of one: the same ranking)."""
+        idx = np.asarray(submaps, dtype=np.int64).reshape(-1)
+        idx = idx[self.facts.live[idx]]
+        pq = self.facts.is_pq[idx]
+        rest = idx[~pq]
+        pooled = self.facts.pooled[rest]
+        return rest[~pooled].tolist(), idx[pq].tolist(), rest[pooled].tolist()
+
+    def _exact_hits(self, si: int) -> tuple[np.ndarray, np.ndarray]:
+        """A flat/fp16 submap's top-``min(k, count)`` (FAISS's exact search)."""
+        hit = self._exact.get(si)
+        if hit is None:
+            sub = self.subs[si]
+            dist, rows = sub.search(self.q, min(self.k, sub.count), self.factor)
+            hit = self._exact[si] = (np.asarray(dist, np.float32), np.asarray(rows, np.int64))
+        return hit
+
+    def _candidates(self, si: int) -> tuple[np.ndarray, np.ndarray]:
+        hit = self._stage1.get(si)
+        if hit is None:
+            dist, rows = self.subs[si].pq_candidates(self.q, self.kk)
+            hit = self._stage1[si] = (np.asarray(dist, np.float32), np.asarray(rows, np.int64))
+        return hit
+
+    def _pick(self, pq: list[int]) -> tuple[np.ndarray, np.ndarray]:
+        """(submap, row) of the best ``k·rerank_factor`` pq candidates of these submaps."""
+        if not pq:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        stage = [self._candidates(si) for si in pq]
+        approx = np.concatenate([d for d, _ in stage])
+        owner = np.repeat(np.array(pq, dtype=np.int64), [len(r) for _, r in stage])
+        rows = np.concatenate([r for _, r in stage])
+        if len(approx) > self.kk:
+            best = np.argpartition(approx, self.kk - 1)[:self.kk]
+            owner, rows = owner[best], rows[best]
+        return owner, rows
+
+    def _rerank(self, picks: list[tuple[np.ndarray, np.ndarray]]) -> None:
+        """Exact distances of the picked rows not re-ranked yet, one read per submap (rows
+        ascending); the reads of several submaps' cold pages are queued at once first."""
+        keys = np.unique(np.concatenate([_key(o, r) for o, r in picks]))
+        keys = keys[~np.isin(keys, self._keys)]
+        if not len(keys):
+            return
+        owner, rows = keys >> _ROW_BITS, keys & ((1 << _ROW_BITS) - 1)
+        cuts = np.flatnonzero(np.diff(owner)) + 1
+        groups = list(zip(owner[np.r_[0, cuts]].tolist(), np.split(rows, cuts)))
+        if len(groups) > 1:  # one submap: measured no gain from the advice, only its cost
+            for si, r in groups:
+                self.subs[si].prefetch(r, ("vectors",))
+        dist = np.concatenate([np.asarray(self.subs[si].exact_sq_l2(r, self.q), np.float32)
+                               for si, r in groups])
+        self._keys = np.concatenate([self._keys, keys])
+        self._dist = np.concatenate([self._dist, dist])
+        order = np.argsort(self._keys)
+        self._keys, self._dist = self._keys[order], self._dist[order]
+
+    def _gather(self, exact: list[int], pick: tuple[np.ndarray, np.ndarray],
+                pooled: list[int]) -> tuple[Hits, list[int]]:
+        """(hits of a set's submaps searched alone and of its pq pool, its pooled submaps)."""
+        hits = [self._exact_hits(si) for si in exact]
+        owner, rows = pick
+        pq_dist = self._dist[np.searchsorted(self._keys, _key(owner, rows))]
+        dist = np.concatenate([d for d, _ in hits] + [pq_dist])
+        sub = np.concatenate([np.repeat(np.array(exact, dtype=np.int64),
+                                        [len(r) for _, r in hits]), owner])
+        row = np.concatenate([r for _, r in hits] + [rows])
+        return (dist, sub, row), pooled
+
+    def _with_small(self, hits: Hits, pooled: list[int], small: Hits) -> Hits:
+        """A set's top-``k``: its own hits and its pooled submaps' rows."""
+        dist, sub, row = hits
+        if pooled:
+            wanted = np.zeros(len(self.subs), dtype=bool)
+            wanted[pooled] = True
+            keep = wanted[small[1]]
+            dist = np.concatenate([dist, small[0][keep]])
+            sub = np.concatenate([sub, small[1][keep]])
+            row = np.concatenate([row, small[2][keep]])
+        return top_k(dist, sub, row, self.k)
