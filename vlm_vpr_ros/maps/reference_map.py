@@ -85,10 +85,6 @@ class ReferenceMap:
         ``[i]`` for an unsplit submap, ``[]`` when there is no such group."""
         return list(self._groups.get(group, []))
 
-    def search_submap(self, i: int, q: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-        """Top-``k`` (squared L2, row) in submap ``i`` for a (1, dim) float32 query."""
-        return self.submaps[i].search(q, k, self.rerank_factor)
-
     def open_submaps(self) -> "ReferenceMap":
         """Open and check every submap now (v2 maps open them lazily, on first search). Batch
         tools call this so a damaged map fails before the first query, naming the file; the
