@@ -20,8 +20,9 @@ truncated while the map is open would make the next page access raise SIGBUS (a 
 cannot catch), so every search first ``stat``s the submap's files and raises :class:`MapError`
 instead; a file whose modification or change time moved since the check is checked again, and a
 submap whose content changed under a running process is refused from then on (every query that
-needs it fails, flagged) until the map is reloaded. The full sha256 pass is :func:`~vlm_vpr_ros.maps.format.verify_files`
-(``vlm-vpr map verify``, node parameter ``verify_map``).
+needs it fails, flagged) until the map is reloaded. The full sha256 pass is
+:func:`~vlm_vpr_ros.maps.format.verify_files` (``vlm-vpr map verify``, node parameter
+``verify_map``).
 """
 
 from __future__ import annotations
