@@ -30,7 +30,7 @@ def test_lookalike_step_prior_fixes_what_vpr_gets_wrong(doc):
     # on the plain map the place is unique: VPR alone and the default fusion get every query
     plain = doc["summaries"]["map"]
     assert plain[VPR]["accuracy"]["0.025km"] == plain[FUSED]["accuracy"]["0.025km"] == 100.0
-    assert set(doc["tables"]) == {"map", "lookalike", "bag"}
+    assert set(doc["tables"]) == {"map", "lookalike", "bag", "fixes"}
     assert doc["summaries"]["bag"]["bag, " + FUSED] == plain[FUSED]  # same frames, same answers
 
 
@@ -128,6 +128,14 @@ def test_printed_tables_are_the_json_tables(demo_run, doc):
         assert doc["tables"][step] == {"title": TITLES[step], "columns": head, "rows": body}
         assert head[2] == "25m"
     assert "built from the shipped images" in printed  # the look-alikes are stated as such
+    from vlm_vpr_ros.evaluation.demo import fixes_table
+    from vlm_vpr_ros.evaluation.metrics import format_cells
+
+    head, body = fixes_table(doc["summaries"])  # the verified rows of every step
+    assert doc["tables"]["fixes"] == {"columns": head, "rows": body}
+    assert format_cells(head, body, TITLES["fixes"]) in printed
+    assert [r[0] for r in body] == [f"demo map: {FUSED}", f"look-alike map: {FUSED}",
+                                    f"look-alike map: {TRUSTED}"]
 
 
 def test_figures_are_images(doc):
