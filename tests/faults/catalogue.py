@@ -57,6 +57,8 @@ CATALOGUE: dict[str, tuple[str, str, str]] = {
                              "skipped and listed in the manifest, build goes on"),
     "image_huge_reference": ("image", "a reference whose header says 10001x10001 px",
                              "skipped (named, 'too large') before decoding"),
+    "image_featureless_query": ("image", "black, white, grey, gradient and 4000x8 query frames "
+                                "(`localize` on the demo map)", "answered, every one NO_FIX"),
     "image_truncated_query": ("image", "a truncated JPEG query", "flagged row `image_error`"),
     # -- bags ------------------------------------------------------------------------------------
     "bag_mcap_truncated": ("bag", "MCAP cut at 60 %", "frames read are scored, bag flagged "

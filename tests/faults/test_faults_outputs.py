@@ -87,6 +87,30 @@ def test_truncated_query_flagged(cli, tmp_path, demo_data, demo_map):
     assert [bool(r["flags"]) for r in rows][1] and "image_error" in rows[1]["flags"]
 
 
+@pytest.mark.fault("image_featureless_query")
+def test_featureless_queries_are_never_fixes(cli, tmp_path, demo_map):
+    """What a camera sends when it sees nothing (lens cap, overexposed, grey, a gradient, a
+    4000x8 strip): `localize` answers every one, none with STATUS_FIX (issue 19's silently wrong
+    case: before verification these were real places at 25 m, confidence 1.0)."""
+    images = tmp_path / "q"
+    images.mkdir()
+    grad = np.repeat(np.linspace(0, 255, 640, dtype=np.uint8)[None, :, None], 480, 0)
+    frames = {"black.png": np.zeros((480, 640, 3), np.uint8),
+              "white.png": np.full((480, 640, 3), 255, np.uint8),
+              "grey.png": np.full((480, 640, 3), 128, np.uint8),
+              "gradient.png": np.repeat(grad, 3, 2),
+              "strip.png": np.full((8, 4000, 3), 90, np.uint8)}
+    for name, rgb in frames.items():
+        cv2.imwrite(str(images / name), rgb)
+    (tmp_path / "q.csv").write_text("file\n" + "\n".join(frames) + "\n")
+    rc, _, _ = cli("localize", "--map", demo_map, "--images", images, "--queries",
+                   tmp_path / "q.csv", "--out", tmp_path / "r.csv")
+    rows = list(csv.DictReader((tmp_path / "r.csv").open()))
+    assert rc == 0 and sorted(r["file"] for r in rows) == sorted(frames)
+    assert [r["status"] for r in rows] == ["no_fix"] * len(frames), rows
+    assert all(float(r["uncertainty_m"]) > 1000 or "image_error" in r["flags"] for r in rows)
+
+
 # -- bags --------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def small_bag(tmp_path_factory, demo_data):

@@ -55,7 +55,8 @@ def verify_and_stamp(hyp: Hypothesis, local: LocalFeatures | None, verifier: Ver
     if verifier is not None and hyp.candidates:
         model = localizer.error_model_for(hyp.prior) if hyp.prior is not None else None
         verifier.verify(hyp, local, model, trust_prior=policy.trusts(hyp),
-                        level=policy.fix_min_p_correct)
+                        level=policy.fix_min_p_correct,
+                        radii_calibrated=not localizer.calibration_source.startswith("none"))
     elif "unverified" not in hyp.flags:
         hyp.flags = tuple(hyp.flags) + ("unverified",)
         hyp.verification = hyp.verification or "unverified: verification off"

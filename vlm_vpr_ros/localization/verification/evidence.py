@@ -115,3 +115,14 @@ def _first_of_near_tie(winner: int, strong: np.ndarray, inl: np.ndarray, xyz: np
     first = int(rivals.min())
     same = strong[(xyz[strong] @ xyz[first]) >= cos_r]
     return int(same[np.argmax(inl[same])])
+
+
+def spread_radii(lat: np.ndarray, lon: np.ndarray, winner: int,
+                 quantiles: tuple[float, ...] = (0.68, 0.95)) -> tuple[float, ...]:
+    """Radii (m) around candidate ``winner`` holding the given shares of all the candidates'
+    positions: where the answer may be when geometry supports none of them better than the
+    others (the visually similar places, each as likely)."""
+    xyz = latlon_to_unit(np.asarray(lat, np.float64), np.asarray(lon, np.float64))
+    cos_d = np.clip(xyz @ xyz[winner], -1.0, 1.0)
+    dist_m = np.arccos(cos_d) * EARTH_RADIUS_KM * 1000.0
+    return tuple(float(np.quantile(dist_m, q, method="inverted_cdf")) for q in quantiles)

@@ -29,7 +29,7 @@ from vlm_vpr_ros.localization.verification.base import (LocalFeatureExtractor, M
                                                         one_blas_thread)
 from vlm_vpr_ros.localization.verification.calibration import (PCorrect, load_doc,
                                                                verified_radius)
-from vlm_vpr_ros.localization.verification.evidence import EvidenceConfig, weigh
+from vlm_vpr_ros.localization.verification.evidence import EvidenceConfig, spread_radii, weigh
 from vlm_vpr_ros.localization.verification.geometry import GeometryConfig, fundamental_inliers
 from vlm_vpr_ros.localization.verification.presets import preset_for_map
 from vlm_vpr_ros.maps.features import FeatureStore
@@ -243,9 +243,12 @@ class Verifier:
         return top + [c for c in visual if id(c) not in seen]
 
     def verify(self, hyp: Hypothesis, query: LocalFeatures | None, error_model: Any = None,
-               trust_prior: bool = False, level: float = 0.95) -> None:
+               trust_prior: bool = False, level: float = 0.95,
+               radii_calibrated: bool = True) -> None:
         """Verify ``hyp``'s top K candidates in place (module docstring); the inlier matches
-        of the re-ranked top K are kept in ``hyp.matches`` (for drawing)."""
+        of the re-ranked top K are kept in ``hyp.matches`` (for drawing). ``radii_calibrated``:
+        whether the posterior's radii are calibrated on this map (else an answer that geometry
+        does not support gets the candidates' spread as its radii)."""
         if not self.enabled or query is None or not hyp.candidates:
             why = self.unavailable or ("no query features" if query is None else "no match")
             hyp.verification = f"unverified: {why}"
@@ -275,6 +278,13 @@ class Verifier:
         p_radius = p if trust_prior else pu  # an untrusted prior narrows no radius
         fb68 = hyp.uncertainty_m + shift_m
         fb95 = (hyp.radius95_m if math.isfinite(hyp.radius95_m) else fb68) + shift_m
+        if ev.winner_inliers <= self.evidence.competitor_floor and not radii_calibrated:
+            # geometry supports no candidate (a lens cap, fog, a place not in the map) and the
+            # posterior's radii are not calibrated on this map (no leave-one-out pairs, e.g.
+            # the demo map: its posterior said 25 m for a black frame): the radii cover the
+            # candidates' spread instead
+            s68, s95 = spread_radii(lat, lon, ev.winner)
+            fb68, fb95 = max(fb68, s68), max(fb95, s95)
         r68 = verified_radius(self.model, p_radius, 0.68, fb68, level)
         hyp.uncertainty_m = r68
         hyp.radius95_m = max(r68, verified_radius(self.model, p_radius, 0.95, fb95, level))
