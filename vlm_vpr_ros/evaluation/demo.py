@@ -1,4 +1,4 @@
-"""``vlm-vpr demo``: the whole method on the shipped OpenStreetView-5M images, in about a minute.
+"""``vlm-vpr demo``: the whole method on the shipped OpenStreetView-5M images (about 1.5 min).
 
 1. A map of the 71 images (one submap per country) and 71 queries that are altered copies of
    them (the place *is* in the map: the easy case for VPR, so VPR alone is right everywhere and
