@@ -24,13 +24,24 @@ def compressed_jpeg(data: bytes, stamp_ns: int, frame_id: str) -> Any:
 
 
 def candidates_array(stamp_ns: int, name: str, hardware_id: str,
-                     rows: Sequence[Mapping[str, str]]) -> Any:
+                     rows: Sequence[Mapping[str, str]],
+                     answer: tuple[str, bool, Mapping[str, str]] | None = None) -> Any:
     """A ``DiagnosticArray`` with one OK status per candidate row (name ``<name> <rank>``,
-    message = reference id, values = the row)."""
+    message = reference id, values = the row), after the ``answer`` when given: ``(name, is a
+    fix, values)``, a status of its own (OK for a fix, else WARN; message = the values'
+    ``status`` and ``status_reason``)."""
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
     arr = DiagnosticArray()
     _stamp(arr.header, stamp_ns)
+    if answer is not None:
+        title, fix, values = answer
+        why = values.get("status_reason", "")
+        st = DiagnosticStatus(level=DiagnosticStatus.OK if fix else DiagnosticStatus.WARN,
+                              name=title, hardware_id=hardware_id,
+                              message=f"{values.get('status', '')}{': ' + why if why else ''}")
+        st.values = [KeyValue(key=str(k), value=str(v)) for k, v in values.items()]
+        arr.status.append(st)
     for row in rows:
         st = DiagnosticStatus(level=DiagnosticStatus.OK, name=f"{name} {row.get('rank', '')}",
                               hardware_id=hardware_id, message=str(row.get("ref_id", "")))

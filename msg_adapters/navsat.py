@@ -2,8 +2,10 @@
 
 Policy (what ``robot_localization``'s navsat_transform expects; docs/verification.md):
 
-* The status follows the core's status rule (:func:`vlm_vpr_ros.localization.verification.
-  status.fix_status`, the same the results CSV, the relocalize answer and diagnostics use):
+* The status is the one the pipeline stamped on the answer (``hyp.status``, under the status
+  policy the query ran with), so the NavSatFix, the results CSV, the relocalize answer and
+  diagnostics always agree; an answer without one is judged here by the same rule
+  (:func:`vlm_vpr_ros.localization.verification.status.fix_status`):
   ``STATUS_FIX`` only for a *verified* answer with ``p_correct >= fix_min_p_correct`` (default
   0.95) and per-axis σ <= ``fix_max_sigma_m`` (default 50 m); an answer decisive only because
   the prior removed far look-alikes (``prior_resolved``) only when the prior is trusted
@@ -23,7 +25,7 @@ Policy (what ``robot_localization``'s navsat_transform expects; docs/verificatio
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from vlm_vpr_ros.localization.verification.status import (K68, K95, MAX_SIGMA_M, StatusPolicy,
@@ -46,14 +48,8 @@ class FixPolicy:
     fallback_min_sigma_m: float = 0.0  # least σ of a fix failing the rule (0: its real σ)
     altitude_m: float = 0.0
     altitude_sigma_m: float = 1000.0
-    fix_max_sigma_m: float = 50.0  # STATUS_FIX only when σ <= this
-    fix_min_p_correct: float = 0.95  # ... and p_correct >= this
-    trust_prior_for_fix: bool = False  # prior_resolved answers may be fixes
-    trust_operator_prior: bool = False  # ... when the prior carries its own sigma_km
-
-    def status_policy(self) -> StatusPolicy:
-        return StatusPolicy(self.fix_min_p_correct, self.fix_max_sigma_m,
-                            self.trust_prior_for_fix, self.trust_operator_prior)
+    #: the status rule for answers the pipeline did not stamp (``hyp.status`` empty)
+    status: StatusPolicy = field(default_factory=StatusPolicy)
 
 
 @dataclass(frozen=True)
@@ -75,7 +71,10 @@ def fix_fields(hyp: Hypothesis, policy: FixPolicy | None = None) -> FixFields:
     """Status, covariance and position of the fix for ``hyp`` under ``policy``."""
     policy = policy or FixPolicy()
     sigma = horizontal_sigma(hyp)
-    precise, reason = fix_status(hyp, policy.status_policy())
+    if hyp.status in ("fix", "no_fix"):  # stamped by the pipeline (one decision per answer)
+        precise, reason = hyp.status == "fix", hyp.status_reason
+    else:
+        precise, reason = fix_status(hyp, policy.status)
     status = STATUS_FIX
     if not precise:
         sigma = finite_sigma(max(sigma, policy.fallback_min_sigma_m))
@@ -89,11 +88,12 @@ def fix_fields(hyp: Hypothesis, policy: FixPolicy | None = None) -> FixFields:
 
 
 def navsat_fix(hyp: Hypothesis, stamp_ns: int, frame_id: str,
-               policy: FixPolicy | None = None) -> Any:
-    """A ``sensor_msgs/NavSatFix`` (rclpy message) for ``hyp``, stamped ``stamp_ns``."""
+               policy: FixPolicy | None = None, fields: FixFields | None = None) -> Any:
+    """A ``sensor_msgs/NavSatFix`` (rclpy message) for ``hyp``, stamped ``stamp_ns``
+    (``fields``: :func:`fix_fields` already computed for it)."""
     from sensor_msgs.msg import NavSatFix
 
-    f = fix_fields(hyp, policy)
+    f = fields if fields is not None else fix_fields(hyp, policy)
     msg = NavSatFix()
     msg.header.stamp.sec = int(stamp_ns) // 1_000_000_000
     msg.header.stamp.nanosec = int(stamp_ns) % 1_000_000_000

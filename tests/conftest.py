@@ -37,6 +37,23 @@ def demo_map(tmp_path_factory, demo_data) -> Path:
     return out
 
 
+@pytest.fixture(scope="module")
+def pipeline(demo_map):
+    """The demo map opened as the node opens it (the runtime, relocalize and debug-view
+    tests)."""
+    from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
+
+    return LocalizationPipeline.open(demo_map)
+
+
+@pytest.fixture(scope="module")
+def image(demo_data):
+    """The runtime tests' query frame: a demo image (Sanluri, Sardinia), RGB."""
+    from vlm_vpr_ros.files.images import load_image
+
+    return load_image(demo_data / "images" / "546314506564628.jpg")
+
+
 @pytest.fixture(scope="session")
 def demo_country_map(tmp_path_factory, demo_data) -> Path:
     """The same images with one submap per country."""

@@ -61,7 +61,7 @@ def test_bag_equals_localize_on_files(cbag, pipe, demo_data, queries, tmp_path):
     from vlm_vpr_ros.localization.batch import localize_files
     from vlm_vpr_ros.evaluation.metrics import evaluate_results_csv
     from vlm_vpr_ros.files.csvio import read_file_column
-    from vlm_vpr_ros.cli.common import write_csv_atomic
+    from vlm_vpr_ros.files.csvio import write_csv_atomic
     from vlm_vpr_ros.localization.batch import RESULT_FIELDS
 
     res = evaluate_bag(open_bag(cbag), pipe, _priors(demo_data), tmp_path / "ev",
@@ -190,7 +190,16 @@ def test_run_bag_demo(demo_map, demo_data, queries, tmp_path):
                         demo_data / "priors_osv5m_baseline.csv")
     for key in ("bag", "frames_csv", "world_map_png", "error_cdf_png", "estimates_bag"):
         assert Path(info[key]).exists(), key
-    assert info["summary"]["n"] == len(_rows(Path(info["frames_csv"])))
+    frames = _rows(Path(info["frames_csv"]))
+    assert info["summary"]["n"] == len(frames)
+    # the fix rate counts the frames published as STATUS_FIX; each is the query's own place
+    fixes = [r for r in frames if r["status"] == "fix"]
+    assert info["summary"]["fixes"]["n"] == len(fixes) > 0
+    assert all(float(r["error_km"]) * 1000 <= 25 for r in fixes)
+    # a second run replaces its own evaluation (every `make demo` after the first does this)
+    again = run_bag_demo(tmp_path / "demo", demo_map, demo_data / "images", queries,
+                         demo_data / "priors_osv5m_baseline.csv")
+    assert again["summary"] == info["summary"]
 
 
 def test_frames_csv_stamps_are_exact(demo_data, queries, pipe, tmp_path):

@@ -10,8 +10,8 @@ import cv2
 import numpy as np
 import pytest
 
-from vlm_vpr_ros.evaluation.demo import (FUSED, PAPER, PRIOR, THRESHOLDS, TITLES, VPR,
-                                         DEMO_DATA)
+from vlm_vpr_ros.evaluation.demo import (FUSED, PAPER, PRIOR, THRESHOLDS, TITLES, TRUSTED,
+                                         VPR, DEMO_DATA)
 from vlm_vpr_ros.geodesy import haversine_km
 
 
@@ -30,8 +30,38 @@ def test_lookalike_step_prior_fixes_what_vpr_gets_wrong(doc):
     # on the plain map the place is unique: VPR alone and the default fusion get every query
     plain = doc["summaries"]["map"]
     assert plain[VPR]["accuracy"]["0.025km"] == plain[FUSED]["accuracy"]["0.025km"] == 100.0
-    assert set(doc["tables"]) == {"map", "lookalike", "bag"}
+    assert set(doc["tables"]) == {"map", "lookalike", "bag", "fixes"}
     assert doc["summaries"]["bag"]["bag, " + FUSED] == plain[FUSED]  # same frames, same answers
+
+
+def test_every_fix_is_right_and_fixes_need_verification(demo_run, doc):
+    """The fix columns, recomputed from the results CSVs (status column) and the ground truth
+    (haversine): the default rows are verified; on the plain map nearly every answer is a fix,
+    each at the query's own place; on the look-alike map none is a fix by default (a place and
+    its look-alike give the same inliers), and the fixes a trusted prior allows are right."""
+    from vlm_vpr_ros.files.csvio import read_table
+
+    out, printed = demo_run
+    truth = {r["file"]: (float(r["lat"]), float(r["lon"]))
+             for r in read_table(out / "queries.csv", ("file", "lat", "lon"))}
+    seen = {}
+    for step, folder in (("map", out / "results"), ("lookalike", out / "lookalike" / "results")):
+        for i, (name, summary) in enumerate(doc["summaries"][step].items()):
+            if summary["fixes"] is None:  # not verified: the baselines and the prior alone
+                assert name in (VPR, PRIOR) or name.startswith("paper"), name
+                continue
+            rows = read_table(folder / f"results_{i}.csv", ("file", "status"))
+            errs = [float(haversine_km(float(r["lat"]), float(r["lon"]), *truth[r["file"]]))
+                    for r in rows if r["status"] == "fix"]
+            fx = summary["fixes"]
+            assert fx["n"] == len(errs) and fx["rate_pct"] == round(100 * len(errs) / 71, 2)
+            assert all(e <= 0.025 for e in errs), (step, name, errs)
+            assert fx["precision25_pct"] == (100.0 if errs else None)
+            seen[step, name] = len(errs)
+    assert seen[("map", FUSED)] >= 64  # 90 %: the altered copies verify against their source
+    assert seen[("lookalike", FUSED)] == 0 and seen[("lookalike", TRUSTED)] > 0
+    assert doc["summaries"]["bag"]["bag, " + FUSED]["fixes"]["n"] == seen[("map", FUSED)]
+    assert "fixes: the share of answers published as STATUS_FIX" in printed
 
 
 def test_vpr_only_is_the_brute_force_nearest_neighbour(demo_run):
@@ -98,6 +128,14 @@ def test_printed_tables_are_the_json_tables(demo_run, doc):
         assert doc["tables"][step] == {"title": TITLES[step], "columns": head, "rows": body}
         assert head[2] == "25m"
     assert "built from the shipped images" in printed  # the look-alikes are stated as such
+    from vlm_vpr_ros.evaluation.demo import fixes_table
+    from vlm_vpr_ros.evaluation.metrics import format_cells
+
+    head, body = fixes_table(doc["summaries"])  # the verified rows of every step
+    assert doc["tables"]["fixes"] == {"columns": head, "rows": body}
+    assert format_cells(head, body, TITLES["fixes"]) in printed
+    assert [r[0] for r in body] == [f"demo map: {FUSED}", f"look-alike map: {FUSED}",
+                                    f"look-alike map: {TRUSTED}"]
 
 
 def test_figures_are_images(doc):

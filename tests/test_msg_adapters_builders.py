@@ -11,6 +11,7 @@ from msg_adapters.diagnostics import diagnostic_array, format_value, level_name,
 from msg_adapters.navsat import (K68, K95, MAX_SIGMA_M, STATUS_FIX, STATUS_NO_FIX, FixPolicy,
                                  fix_fields, navsat_fix)
 from vlm_vpr_ros.errors import ConfigError
+from vlm_vpr_ros.localization.verification.status import StatusPolicy
 from vlm_vpr_ros.priors.base import Prior, PriorResult
 from vlm_vpr_ros.types import Hypothesis
 
@@ -41,6 +42,10 @@ def test_good_fix_is_status_fix_with_enu_covariance():
     assert fix_fields(hyp(sigma=60.0, r95=5000.0)).sigma_m == pytest.approx(5000.0 / K95)
 
 
+def policy(**status) -> FixPolicy:
+    return FixPolicy(status=StatusPolicy(**status))
+
+
 def test_status_rule_needs_verified_p_correct_and_small_sigma():
     # a verified no-prior match is a fix with its real sigma (flags do not matter)
     f = fix_fields(hyp(sigma=30.0, r95=40.0, flags=("no_prior", "global"), prior=False))
@@ -51,12 +56,12 @@ def test_status_rule_needs_verified_p_correct_and_small_sigma():
                    (hyp(sigma=25.0, p=0.9), "p_correct 0.900 < 0.95")):
         g = fix_fields(h)
         assert g.status == STATUS_NO_FIX and not g.precise and g.reason == why
-    assert fix_fields(hyp(sigma=25.0, p=0.9), FixPolicy(fix_min_p_correct=0.85)).precise
+    assert fix_fields(hyp(sigma=25.0, p=0.9), policy(fix_min_p_correct=0.85)).precise
     # a wide radius is not a fix even when verified; the threshold is the policy's
     g = fix_fields(hyp(sigma=3000.0, r95=9000.0))
     assert g.status == STATUS_NO_FIX and g.reason.startswith("sigma 3677 m > 50")
     assert g.sigma_m == pytest.approx(9000.0 / K95)  # honest covariance, no inflation
-    assert fix_fields(hyp(sigma=3000.0), FixPolicy(fix_max_sigma_m=5000.0)).status == STATUS_FIX
+    assert fix_fields(hyp(sigma=3000.0), policy(fix_max_sigma_m=5000.0)).status == STATUS_FIX
     # fallback_status="fix" publishes the others as FIX with a least sigma
     h = fix_fields(hyp(sigma=3000.0, r95=9000.0),
                    FixPolicy(fallback_status="fix", fallback_min_sigma_m=1e5,
@@ -78,11 +83,24 @@ def test_prior_resolved_answers_are_fixes_only_with_a_trusted_prior():
     operator = hyp(sigma=20.0, p=0.99, p_without=0.4, sigma_km=2.0)
     assert fix_fields(vlm).status == STATUS_NO_FIX
     assert fix_fields(vlm).reason.startswith("prior_resolved")
-    assert fix_fields(vlm, FixPolicy(trust_prior_for_fix=True)).status == STATUS_FIX
-    assert fix_fields(vlm, FixPolicy(trust_operator_prior=True)).status == STATUS_NO_FIX
-    assert fix_fields(operator, FixPolicy(trust_operator_prior=True)).status == STATUS_FIX
+    assert fix_fields(vlm, policy(trust_prior_for_fix=True)).status == STATUS_FIX
+    assert fix_fields(vlm, policy(trust_operator_prior=True)).status == STATUS_NO_FIX
+    assert fix_fields(operator, policy(trust_operator_prior=True)).status == STATUS_FIX
     # decisive without the prior as well: a fix whatever the trust
     assert fix_fields(hyp(sigma=20.0, p=0.99, p_without=0.97)).status == STATUS_FIX
+
+
+def test_the_pipelines_stamped_status_is_published():
+    """An answer stamped by the pipeline (under the policy its query ran with) goes out with
+    that status and reason, whatever the adapter's policy: NavSatFix, CSV, relocalize answer
+    and diagnostics cannot disagree, even when a threshold changes during the query."""
+    h = hyp(sigma=20.0, p=0.99, p_without=0.99)
+    h.status, h.status_reason = "no_fix", "p_correct 0.990 < 0.995"
+    f = fix_fields(h)
+    assert f.status == STATUS_NO_FIX and f.reason == "p_correct 0.990 < 0.995"
+    h = hyp(sigma=20.0, p=0.9)
+    h.status = "fix"
+    assert fix_fields(h).status == STATUS_FIX and fix_fields(h).precise
 
 
 @pytest.mark.parametrize("bad", [math.inf, math.nan, -5.0, 0.0, 1e12])
@@ -135,3 +153,26 @@ def test_diagnostics_keep_coordinates_in_full_precision():
     values = status_values(arr)
     assert float(values["last_lat"]) == lat and float(values["last_lon"]) == lon
     assert values["last_lon"] == "-122.445123456789" and values["query_ms"] == "12.35"
+
+
+def test_candidates_array_puts_the_answer_first():
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    from msg_adapters.debug import candidates_array
+
+    rows = [{"rank": "1", "ref_id": "a.jpg", "inliers": "274"},
+            {"rank": "2", "ref_id": "b.jpg", "inliers": ""}]
+    plain = candidates_array(3_000_000_001, "n: candidate", "hw", rows)
+    assert [s.name for s in plain.status] == ["n: candidate 1", "n: candidate 2"]
+    assert (plain.header.stamp.sec, plain.header.stamp.nanosec) == (3, 1)
+    answer = {"status": "STATUS_NO_FIX", "status_reason": "p_correct 0.412 < 0.95",
+              "p_correct": "0.4120"}
+    arr = candidates_array(0, "n: candidate", "hw", rows, ("n: answer", False, answer))
+    first = arr.status[0]
+    assert (first.name, first.level, first.hardware_id) == ("n: answer", DiagnosticStatus.WARN,
+                                                            "hw")
+    assert first.message == "STATUS_NO_FIX: p_correct 0.412 < 0.95"
+    assert {kv.key: kv.value for kv in first.values} == answer
+    assert [s.message for s in arr.status[1:]] == ["a.jpg", "b.jpg"]
+    fix = candidates_array(0, "n", "hw", [], ("n: answer", True, {"status": "STATUS_FIX"}))
+    assert fix.status[0].level == DiagnosticStatus.OK and fix.status[0].message == "STATUS_FIX"

@@ -11,7 +11,8 @@ import pytest
 import yaml
 
 from vlm_vpr_ros.errors import ConfigError
-from vlm_vpr_ros.runtime.params import NodeConfig, PARAMETERS, from_params
+from vlm_vpr_ros.runtime.params import (NESTED, NodeConfig, PARAMETER_SPECS, PARAMETERS,
+                                        RUNTIME_WRITABLE, from_params)
 
 LAUNCH = Path(__file__).resolve().parents[1] / "launch_scripts"
 
@@ -23,11 +24,37 @@ def test_defaults_and_nested_settings(tmp_path):
                        "qos_overrides./parameter_events.publisher.depth": 1000})
     assert cfg.prior == {"lat": 1.5, "lon": 2} and cfg.descriptor_options == {"device": "cpu"}
     assert cfg.min_period_s == 2.0 and isinstance(cfg.min_period_s, float)
-    assert cfg.mode == "continuous" and cfg.qos == "sensor_data" and cfg.fallback_status == "no_fix"
+    assert cfg.mode == "continuous" and cfg.qos == "sensor_data"
+    assert cfg.fallback_status == "no_fix"
     lc = cfg.localizer_config()
     assert (lc.top_p, lc.use_submaps, lc.rerank, lc.n_submaps) == (50, True, True, 1)
-    assert set(PARAMETERS) == {f for f in NodeConfig.__dataclass_fields__} - {
-        "prior", "descriptor_options"}
+    assert set(PARAMETERS) == {f for f in NodeConfig.__dataclass_fields__} - set(NESTED)
+
+
+def test_learned_feature_weights_reach_verification(tmp_path):
+    """feature_options.* / matcher_options.* are passed to the verification stage (as the CLI's
+    --feature-option / --matcher-option), weights paths with ~ expanded."""
+    cfg = from_params({"map_dir": str(tmp_path), "feature_options.weights": "~/w/disk.pth",
+                       "matcher_options.weights": "/w/lg.pth", "matcher_options.device": "cpu"})
+    v = cfg.verification_config()
+    assert v.feature_options == {"weights": os.path.expanduser("~/w/disk.pth")}
+    assert v.matcher_options == {"weights": "/w/lg.pth", "device": "cpu"}
+    assert NodeConfig().verification_config().feature_options == {}
+
+
+def test_docs_parameter_table_is_the_schema():
+    """docs/node.md's parameter table lists every parameter once, and its runtime column says
+    exactly which ones are writable at runtime (the runtime-tuning contract)."""
+    import re
+
+    text = (Path(__file__).resolve().parents[1] / "docs" / "node.md").read_text()
+    rows = re.findall(r"^\| `([a-z_0-9]+)` \| (?:bool|int|float|str) \|[^|]*\|[^|]*\| (yes)? ?\|",
+                      text, re.M)
+    assert [n for n, _ in rows] == list(PARAMETER_SPECS)
+    assert {n for n, w in rows if w} == RUNTIME_WRITABLE
+    for name in ("verify_top_k", "fix_min_p_correct", "fix_max_sigma_m", "trust_prior_for_fix",
+                 "trust_operator_prior", "fallback_status", "publish_debug"):
+        assert name in RUNTIME_WRITABLE, name
     assert all(doc for _, doc in PARAMETERS.values())
 
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from test_node_runtime import frame_of, image, make, msg_of, pipeline  # noqa: F401
+from test_node_runtime import frame_of, make, msg_of
 from vlm_vpr_ros.priors import create_prior_provider
 from vlm_vpr_ros.runtime import debug_view
 from vlm_vpr_ros.types import Candidate, Hypothesis
@@ -73,6 +73,10 @@ def test_candidate_rows_and_caption():
 
 @pytest.mark.parametrize("keep", [False, True])
 def test_the_runtime_keeps_decoded_frames_only_for_the_debug_view(pipeline, image, keep):
+    """Only with keep_images (publish_debug) the outcome carries the frame and the answer's
+    verified matches. The frame is a map image itself, so each match joins a point to the same
+    point of the reference: equal fractions of the two images, to a pixel (an independent
+    check of the coordinates the debug view draws)."""
     rt, col = make(pipeline, create_prior_provider("none"), mode="on_trigger")
     rt.keep_images = keep
     try:
@@ -81,5 +85,28 @@ def test_the_runtime_keeps_decoded_frames_only_for_the_debug_view(pipeline, imag
     finally:
         rt.stop()
     assert out is not None and (out.rgb is not None) == keep
+    assert (out.matches is not None) == keep
     if keep:
         assert out.rgb.shape == image.shape
+        hyp, m = out.hypothesis, out.matches
+        assert hyp.ref_id == QUERY and "verified" in hyp.flags
+        assert m.shape == (len(hyp.matches[0]), 4) and len(m) == hyp.inliers > 50
+        h, w = image.shape[:2]
+        assert np.median(np.abs(m[:, :2] - m[:, 2:]) * [w, h]) < 1.0
+        px = debug_view.match_pixels(m, image.shape, (image[::2, ::2], 0.5))
+        assert np.allclose(px[:, :2], m[:, :2] * [w, h]) and np.allclose(px[:, 2:], px[:, :2],
+                                                                         atol=4.0)
+
+
+def test_answer_row_says_status_and_evidence():
+    hyp = _hyp()
+    row = debug_view.answer_row(hyp, "STATUS_NO_FIX", "unverified", 1234.5)
+    assert row["status"] == "STATUS_NO_FIX" and row["status_reason"] == "unverified"
+    assert row["p_correct"] == "" and row["inliers"] == "" and row["sigma_m"] == "1234.5"
+    hyp.p_correct, hyp.inliers, hyp.inlier_ratio = 0.98612, 274, 12.5
+    hyp.verification = "verified"
+    row = debug_view.answer_row(hyp, "STATUS_FIX", "", 14.0)
+    assert (row["p_correct"], row["inliers"], row["inlier_ratio"]) == ("0.9861", "274", "12.50")
+    assert "p_correct 0.986, 274 inliers" in debug_view.caption(hyp, "STATUS_FIX", 14.0)[1]
+    assert debug_view.winner_matches(None, None, hyp) is None  # nothing verified: no lines
+    assert debug_view.match_pixels(None, (480, 640, 3), None) is None

@@ -10,8 +10,7 @@ import time
 
 import pytest
 
-from test_node_runtime import (SlowPrior, frame_of, image, make, msg_of,  # noqa: F401
-                               pipeline)
+from test_node_runtime import SlowPrior, frame_of, make, msg_of
 from vlm_vpr_ros.priors import create_prior_provider
 from vlm_vpr_ros.runtime.worker import QueryRuntime, RelocalizeKind, RuntimeConfig
 

@@ -12,8 +12,6 @@ import pytest
 
 from msg_adapters.image import message_to_rgb
 from vlm_vpr_ros.geodesy import haversine_km
-from vlm_vpr_ros.files.images import load_image
-from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
 from vlm_vpr_ros.priors import create_prior_provider
 from vlm_vpr_ros.priors.base import Prior, PriorProvider, PriorQuery, PriorResult
 from vlm_vpr_ros.runtime.worker import Frame, QueryRuntime, RuntimeConfig, outcome_summary
@@ -53,16 +51,6 @@ class BrokenPrior(PriorProvider):
 
     def request(self, query):
         raise RuntimeError("socket exploded")
-
-
-@pytest.fixture(scope="module")
-def pipeline(demo_map):
-    return LocalizationPipeline.open(demo_map)
-
-
-@pytest.fixture(scope="module")
-def image(demo_data):
-    return load_image(demo_data / "images" / QUERY)
 
 
 def msg_of(rgb: np.ndarray, stamp_ns: int = 1_000_000_123, encoding: str = "rgb8"):

@@ -182,12 +182,23 @@ def test_debug_image_for_every_processed_frame(stack, rgb, demo_data):
     assert len(debug) == processed() >= 3  # one debug image per processed frame
     picture = cv2.imdecode(np.frombuffer(bytes(debug[-1][0].data), np.uint8), cv2.IMREAD_COLOR)
     assert picture is not None and picture.shape[0] == 360 + 48
-    # the right half is the chosen reference (the query's own picture here), not a placeholder
+    # the right half is the chosen reference (the query's own picture here), not a placeholder,
+    # with the verified matches drawn across both halves as green lines (BGR here)
     ref = cv2.resize(load_image(demo_data / "images" / QUERY)[:, :, ::-1],
                      (picture.shape[1] // 2, 360), interpolation=cv2.INTER_AREA)
-    right = picture[60:360, picture.shape[1] - ref.shape[1]:]
-    assert np.abs(right.astype(int) - ref[60:360].astype(int)).mean() < 12.0
-    rows = candidates[-1][0].status
+    right = picture[60:360, picture.shape[1] - ref.shape[1]:].astype(int)
+    green = (right[..., 1] > right[..., 0] + 60) & (right[..., 1] > right[..., 2] + 60)
+    exact = (ref[60:360].astype(int)[..., 1] > ref[60:360].astype(int)[..., 0] + 60)
+    assert green.sum() > exact.sum() + 500  # match lines, not the picture's own green
+    diff = np.abs(right - ref[60:360].astype(int)).mean(axis=2)
+    assert diff[~green].mean() < 12.0
+    status = candidates[-1][0].status
+    answer, rows = status[0], status[1:]
+    values = {kv.key: kv.value for kv in answer.values}
+    assert answer.name == f"{NODE.strip('/')}: answer" and values["ref_id"] == QUERY
+    assert values["status"] in ("STATUS_FIX", "STATUS_NO_FIX") and values["verification"] == \
+        "verified" and int(values["inliers"]) > 100 and float(values["p_correct"]) >= 0.95
+    assert answer.level == (b"\x00" if values["status"] == "STATUS_FIX" else b"\x01")
     assert 1 <= len(rows) <= 10 and rows[0].message == QUERY
     weights = [float(dict((kv.key, kv.value) for kv in r.values)["posterior"] or 0.0)
                for r in rows]

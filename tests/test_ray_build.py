@@ -21,8 +21,8 @@ import cv2
 import numpy as np
 import pytest
 
-from ray_helpers import (DESCRIPTOR, DESCRIPTOR_OPTIONS, OBJECT_STORE, LocalCluster, free_port, make_reference_set,
-                         ray_env)
+from ray_helpers import (DESCRIPTOR, DESCRIPTOR_OPTIONS, OBJECT_STORE, LocalCluster, free_port,
+                         make_reference_set, ray_env)
 from vlm_vpr_ros.distributed.describe import DescribeOptions, describe_to_shards
 from vlm_vpr_ros.distributed.engines import describe_items
 from vlm_vpr_ros.distributed.shards import ShardStore, read_shards

@@ -125,6 +125,27 @@ def test_prior_gate_drops_far_look_alikes_and_picks_the_winner():
     assert ev.winner == 1 and ev.score > 10 * ev.score_ungated
 
 
+def test_near_tie_between_places_goes_to_the_posterior_with_a_prior():
+    """A place (candidates 1, 3: 10 m apart) and its look-alike 5,000 km away (0, 2) with about
+    the same inliers; the prior makes the look-alike only 20x less likely (inside the gate), and
+    the posterior ranks the place first. Without a prior the most inliers win (hloc); with it
+    the near tie goes to the place the posterior ranks first, represented by its strongest
+    candidate, and the answer stays a near tie (ratio < 2: never decisive)."""
+    lat = np.array([12.0, 37.78, 12.0, 37.78009])
+    lon = np.array([-75.0, -122.41, -75.0, -122.41])
+    inl = np.array([170, 120, 150, 160])  # look-alike first by inliers
+    order = [1, 3, 0, 2]  # posterior order: the place first (visual tie, prior nearer it)
+    lat, lon, inl = lat[order], lon[order], inl[order]
+    logp = np.array([0.0, 0.0, -3.0, -3.0])  # e^3 = 20x: not gated (gate 1e4)
+    assert weigh(lat, lon, inl).winner == 2  # no prior: the most inliers (the look-alike)
+    ev = weigh(lat, lon, inl, logp)
+    assert ev.winner == 1 and ev.winner_inliers == 160  # the place, its strongest photo
+    assert ev.gated == 0 and ev.score == pytest.approx(160 / 171)  # < 2: a near tie
+    # a clear winner is not a tie: 2x the inliers of the other place keeps the most inliers
+    ev = weigh(lat, lon, np.array([60, 50, 170, 150]), logp)
+    assert ev.winner == 2 and ev.score == pytest.approx(170 / 61)
+
+
 def test_p_correct_is_the_conformal_bound_of_wrong_answers():
     null = np.sort(RNG.gamma(2.0, 1.0, 199))
     model = PCorrect(null)

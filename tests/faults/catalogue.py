@@ -86,7 +86,7 @@ CATALOGUE: dict[str, tuple[str, str, str]] = {
     "out_localize_exists": ("output", "`localize --out` an existing results file",
                             "exit 2 unless --overwrite / --resume"),
     "out_out_is_file": ("output", "`build-map --out` an existing file", "exit 2 one line"),
-    # -- partial results ----------------------------------------------------------------------------
+    # -- partial results --------------------------------------------------------------------------
     "partial_query_exception": ("partial", "IndexError in the localizer for one query (zero "
                                            "candidates)", "flagged `error` row, run completes"),
     "partial_interrupt_resume": ("partial", "localize interrupted after 3 rows, then "
@@ -98,7 +98,7 @@ CATALOGUE: dict[str, tuple[str, str, str]] = {
                            "exit 2 one line, rows kept, `--resume` finishes"),
     "kill9_build_resume": ("disk", "kill -9 during `build-map`, then the same command",
                            "resumes from the saved state (no refit), map valid"),
-    # -- VLM server ---------------------------------------------------------------------------------
+    # -- VLM server -------------------------------------------------------------------------------
     "vlm_429": ("vlm", "429 with Retry-After, always", "retries, then flagged `http_429`"),
     "vlm_500": ("vlm", "HTTP 500, always", "retries, then flagged `http_500`"),
     "vlm_garbage": ("vlm", "200 with non-JSON bytes", "flagged `bad_response`"),
@@ -107,14 +107,14 @@ CATALOGUE: dict[str, tuple[str, str, str]] = {
     "vlm_reset": ("vlm", "connection reset", "flagged `connection_error`"),
     "vlm_silence": ("vlm", "request read, never answered", "flagged `timeout`"),
     "cli_timeout_abc": ("config", "`--prior-option timeout_s=abc`", "exit 2 one line"),
-    # -- secrets --------------------------------------------------------------------------------------
+    # -- secrets ----------------------------------------------------------------------------------
     "secret_url_userinfo": ("secret", "key in `base_url` userinfo, -vv, retries logged",
                             "canary in no output"),
     "secret_api_key_env": ("secret", "`--prior-option api_key_env=sk-…` (key by mistake)",
                            "exit 2, canary in no output"),
     "secret_key_newline": ("secret", "API key with a newline",
                            "exit 2, canary in no output (no traceback)"),
-    # -- node -------------------------------------------------------------------------------------------
+    # -- node -------------------------------------------------------------------------------------
     "node_relocalize_burst": ("node", "300 relocalize calls in a burst, VLM hung",
                               "every call answered; one shared VLM query; canary not in "
                               "the node log"),

@@ -241,7 +241,7 @@ def test_latin1(cli, tmp_path, demo_data):
     exit2(_build(cli, tmp_path, demo_data, c), "malformed CSV")
 
 
-# -- answers ---------------------------------------------------------------------------------------
+# -- answers --------------------------------------------------------------------------------------
 @pytest.mark.fault("answer_1e400")
 def test_answer_overflow():
     from vlm_vpr_ros.priors.parsing import PARSER_MODES, parse_answer

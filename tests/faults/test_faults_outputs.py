@@ -176,7 +176,7 @@ def test_weights_garbage(cli, tmp_path):
     exit2(cli("weights", "check", "cosplace", "--weights", w), str(w))
 
 
-# -- output safety ---------------------------------------------------------------------------------
+# -- output safety --------------------------------------------------------------------------------
 @pytest.fixture
 def user_docs(tmp_path):
     d = tmp_path / "docs"
@@ -324,7 +324,7 @@ def test_interrupt_then_resume(cli, demo_map, demo_data, queries, tmp_path, monk
                      for r in _rows(tmp_path / "full.csv")]
 
 
-# -- full disk ----------------------------------------------------------------------------------------
+# -- full disk ------------------------------------------------------------------------------------
 class _FullDisk:
     """``os`` for one module, whose fsync fails with ENOSPC after ``after`` calls."""
 

@@ -22,7 +22,7 @@ def run_bag_demo(out_dir: str | os.PathLike[str], map_dir: str | os.PathLike[str
     """Make ``out_dir/demo_bag`` (CompressedImage at 2 Hz + NavSatFix) from ``images_dir``/
     ``coords_csv`` and evaluate it against ``map_dir`` with recorded priors (if given).
     Returns the output paths and the accuracy summary (key ``summary``, at
-    ``thresholds_km``)."""
+    ``thresholds_km``, with the frames' ``fixes``)."""
     from vlm_vpr_ros.bags.evaluate import evaluate_bag
     from vlm_vpr_ros.bags.make import make_bag
     from vlm_vpr_ros.bags.reader import open_bag
@@ -46,6 +46,7 @@ def run_bag_demo(out_dir: str | os.PathLike[str], map_dir: str | os.PathLike[str
     info = {"bag": str(bag_dir)}
     info.update(res["details"]["outputs"])
     frames = read_table(out / "evaluation" / "frames.csv", ("error_km",), "frames CSV")
-    info["summary"] = summarize([float(r["error_km"]) if r["error_km"] else None
-                                 for r in frames if r["gt_lat"]], thresholds_km)
+    info["summary"] = {**summarize([float(r["error_km"]) if r["error_km"] else None
+                                    for r in frames if r["gt_lat"]], thresholds_km),
+                       "fixes": res["fixes"]}  # the same frames: evaluate-bag's fix rate
     return info

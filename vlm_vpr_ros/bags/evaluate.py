@@ -22,7 +22,7 @@ from vlm_vpr_ros.bags.frames import Frame, GroundTruth, iter_frames, read_ground
 from vlm_vpr_ros.bags.reader import BagReader
 from vlm_vpr_ros.errors import BagError, VlmVprError
 from vlm_vpr_ros.files.csvio import write_csv_atomic
-from vlm_vpr_ros.evaluation.metrics import errors_km, summarize
+from vlm_vpr_ros.evaluation.metrics import errors_km, fix_metrics, summarize
 from vlm_vpr_ros.files.atomic import atomic_write_json
 from vlm_vpr_ros.priors.base import PriorProvider, PriorQuery, wait_prior
 
@@ -91,7 +91,7 @@ def evaluate_bag(bag: BagReader, pipeline: Any, provider: PriorProvider,
     from vlm_vpr_ros.files.outputs import StagedOutput, check_not_inside
 
     check_not_inside(out_dir, [bag.path])
-    with StagedOutput(out_dir, "evaluation", overwrite) as stage:
+    with StagedOutput(out_dir, "evaluation", overwrite, marker=True) as stage:
         try:
             result = _evaluate(bag, pipeline, provider, stage.path, Path(out_dir), config,
                                progress, plots)
@@ -137,7 +137,8 @@ def _evaluate(bag: BagReader, pipeline: Any, provider: PriorProvider, out: Path,
                              f"first error: {errors[0] if errors else 'unknown'}")
     scored = [r for r in rows if r["gt_lat"] != ""]
     errs = [None if r["error_km"] == "" else float(r["error_km"]) for r in scored]
-    summary = summarize(errs)
+    summary = {**summarize(errs),
+               "fixes": fix_metrics([r["status"] for r in scored], errs)}
     outputs = {"frames_csv": "frames.csv", "summary_json": "summary.json"}
     if est_msgs:
         _write_estimates(out / "estimates", est_msgs)

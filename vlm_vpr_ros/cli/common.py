@@ -6,7 +6,6 @@ from __future__ import annotations
 import argparse
 
 from vlm_vpr_ros.config import parse_kv
-from vlm_vpr_ros.files.csvio import write_csv_atomic  # noqa: F401  (re-exported for the CLI)
 from vlm_vpr_ros.localization.localizer import FUSION_MODES, LocalizerConfig
 from vlm_vpr_ros.localization.verification.stage import VerificationConfig
 from vlm_vpr_ros.localization.verification.status import StatusPolicy

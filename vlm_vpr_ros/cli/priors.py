@@ -10,7 +10,8 @@ import os
 from pathlib import Path
 from typing import Any
 
-from vlm_vpr_ros.cli.common import add_prior_args, write_csv_atomic
+from vlm_vpr_ros.cli.common import add_prior_args
+from vlm_vpr_ros.files.csvio import write_csv_atomic
 from vlm_vpr_ros.config import parse_kv
 from vlm_vpr_ros.errors import ConfigError, ImageDecodeError
 from vlm_vpr_ros.evaluation.metrics import errors_km, read_ground_truth, summarize

@@ -10,8 +10,8 @@ The job is the same for both engines (only *where* images are described differs)
    may not be, contain or lie inside the images folder); a finished folder of the same job is
    "up to date";
 2. a stateful descriptor (``vlad_rootsift``) is fitted ONCE on the same sample as the local
-   ``build-map`` (:func:`vlm_vpr_ros.maps.build_images.fit_sample_indices`) and its state is saved, then
-   sent to every worker;
+   ``build-map`` (:func:`vlm_vpr_ros.maps.build_images.fit_sample_indices`) and its state is
+   saved, then sent to every worker;
 3. the images of unfinished shards are described in batches; a shard is written as soon as all
    its rows are back, so a killed run loses at most the shards in flight;
 4. ``describe.json`` is written last.

@@ -14,7 +14,8 @@ Rows (each evaluated at every top-p of the sweep):
 The ``fusion`` column says which fusion mode each row runs (the paper's rows: ``paper``).
 
 The country and cluster partitions are made in memory from the same map
-(:func:`vlm_vpr_ros.maps.assemble.repartition`), so one map and one set of descriptors serve every row.
+(:func:`vlm_vpr_ros.maps.assemble.repartition`), so one map and one set of descriptors serve
+every row.
 The prior itself (``prior only``) is reported as a reference row.
 """
 

@@ -1,4 +1,4 @@
-"""``vlm-vpr demo``: the whole method on the shipped OpenStreetView-5M images, in about a minute.
+"""``vlm-vpr demo``: the whole method on the shipped OpenStreetView-5M images (about 1.5 min).
 
 1. A map of the 71 images (one submap per country) and 71 queries that are altered copies of
    them (the place *is* in the map: the easy case for VPR, so VPR alone is right everywhere and
@@ -9,6 +9,13 @@
    most of them.
 3. A rosbag2 bag of the queries, evaluated offline (``vlm-vpr evaluate-bag``).
 
+The default pipeline's rows (the default fusion, and the bag) are *verified* as the node and
+``localize`` verify them (docs/verification.md): the fix columns say how many answers would be
+published as ``STATUS_FIX`` and how many of those are right. The retrieval baselines (VPR only,
+the paper's modes) and the prior alone are not verified (``-``). The query's local features
+come from the descriptor's own SIFT pass (:meth:`LocalizationPipeline.describe_query`), as in
+the node.
+
 Every table is printed and written to ``OUT/demo.json`` (the docs' tables are generated from it
 by ``scripts/gen_docs.py``), with an error CDF and a contact sheet of the look-alike step. The
 demo is deterministic: the same numbers on every run and machine.
@@ -18,6 +25,7 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
@@ -25,6 +33,7 @@ import numpy as np
 
 from vlm_vpr_ros.files.images import load_image
 from vlm_vpr_ros.geodesy import THRESHOLDS_KM
+from vlm_vpr_ros.localization.verification.status import StatusPolicy
 
 log = logging.getLogger(__name__)
 
@@ -36,13 +45,37 @@ VPR, PRIOR, PAPER, PAPER_NO_RR = ("VPR only (no prior)", "prior only (OSV-5M mod
                                   "paper: country submap+re-rank",
                                   "paper: country submap, no re-rank")
 PAPER_NO_SUB, FUSED = "paper: re-rank, no submap", "prior+VPR (default fusion)"
+TRUSTED = "prior+VPR, trust_prior_for_fix"
 TITLES = {
     "map": "Demo: 71 OSV-5M street images (48 countries); queries are altered copies of map "
            "images",
     "lookalike": "Look-alike step: the same queries on a map where every place has a "
                  "look-alike 5000 km away (built from the shipped images)",
     "bag": "Demo bag evaluated offline (vlm-vpr evaluate-bag)",
+    "fixes": "Verified fixes: the default pipeline's answers published as STATUS_FIX",  # printed
 }
+#: the rows of the fixes table: (step, label) of the steps' verified runs
+FIX_STEPS = (("map", "demo map"), ("lookalike", "look-alike map"))
+FIX_TABLE_COLUMNS = ("", "n", "25m", "fixes", "fix prec 25m", "fix prec 50m")
+
+
+@dataclass(frozen=True)
+class Run:
+    """One row of a demo table: a localizer configuration (None: the recorded prior itself is
+    the estimate), with or without the recorded OSV-5M priors, verified or not, and the status
+    rule of its fixes."""
+
+    config: object = None  # LocalizerConfig | None
+    prior: bool = True
+    verify: bool = False
+    status: StatusPolicy = field(default_factory=StatusPolicy)
+
+
+FIX_MEANING = (
+    "      fixes: the share of answers published as STATUS_FIX: verified (local features + "
+    "geometry\n      over the top 20 candidates), p_correct >= 0.95 and sigma <= 50 m "
+    "(docs/verification.md);\n      fix prec 25m / 50m: the share of those fixes within 25 m / "
+    "50 m of the truth; '-': not verified")
 
 
 def make_query(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -80,11 +113,13 @@ def make_queries(out_dir: Path, seed: int = 0) -> Path:
     return csv_path
 
 
-def run_step(ref_map, runs: dict, files: list[str], qdesc: np.ndarray, queries_csv: Path,
-             out: Path) -> tuple[dict, dict]:
-    """Localize the described queries once per run (``name -> LocalizerConfig``, with the
-    recorded OSV-5M priors unless the name says "no prior"; ``None``: the prior itself as the
-    estimate). Writes ``out/<n>.csv``; returns (summaries, per-run errors/coverage)."""
+def run_step(ref_map, runs: dict[str, Run], files: list[str], qdesc: np.ndarray,
+             queries_csv: Path, out: Path, verifier=None, qlocal: list | None = None
+             ) -> tuple[dict, dict]:
+    """Localize the described queries once per run (``name -> Run``); verified runs use
+    ``verifier`` (on ``ref_map``) with the queries' local features ``qlocal``. Writes
+    ``out/results_<i>.csv``; returns (summaries, per-run errors/coverage/fixes); a verified
+    run's summary carries its ``fixes`` (None for the others)."""
     from vlm_vpr_ros.evaluation.metrics import evaluate_results_csv
     from vlm_vpr_ros.files.csvio import write_csv_atomic
     from vlm_vpr_ros.localization.batch import RESULT_FIELDS
@@ -95,33 +130,60 @@ def run_step(ref_map, runs: dict, files: list[str], qdesc: np.ndarray, queries_c
 
     priors_csv = DEMO_DATA / "priors_osv5m_baseline.csv"
     summaries, extras = {}, {}
-    for i, (name, config) in enumerate(runs.items()):
+    for i, (name, run) in enumerate(runs.items()):
         res = out / f"results_{i}.csv"
-        if config is None:
+        if run.config is None:
             pri = read_prior_csv(priors_csv)
             write_csv_atomic(res, ["file", "lat", "lon"],
                              [{"file": f, "lat": pri[f][0], "lon": pri[f][1]} for f in files])
         else:
-            provider = (create_prior_provider("none") if "no prior" in name else
-                        create_prior_provider("recorded", {"path": str(priors_csv)}))
+            provider = (create_prior_provider("recorded", {"path": str(priors_csv)})
+                        if run.prior else create_prior_provider("none"))
             try:
-                rows = list(localize_descriptors(Localizer(ref_map, config), provider, files,
-                                                 qdesc))
+                rows = list(localize_descriptors(
+                    Localizer(ref_map, run.config), provider, files, qdesc,
+                    verifier=verifier if run.verify else None, policy=run.status,
+                    local=qlocal if run.verify else None))
             finally:
                 provider.close()
             write_csv_atomic(res, RESULT_FIELDS, rows)
-        summaries[name], extras[name] = evaluate_results_csv(res, queries_csv, THRESHOLDS)
+        summary, extras[name] = evaluate_results_csv(res, queries_csv, THRESHOLDS)
+        summaries[name] = {**summary, "fixes": extras[name]["fixes"] if run.verify else None}
         extras[name]["results_csv"] = str(res)
     return summaries, extras
 
 
+def calibration_note(verifier) -> str:
+    """One line on what p_correct can reach on the verifier's map."""
+    n = len(verifier.model.null_scores)
+    if not n:
+        return "      p_correct: this map is not calibrated, so no answer is a fix"
+    return (f"      p_correct: calibrated by {verifier.calibration_source} on this map's "
+            f"references ({n} wrong answers),\n      so it is at most 1 - 1/{n + 1} = "
+            f"{1.0 - 1.0 / (n + 1):.3f}")
+
+
+def lookalike_note(table: dict) -> str:
+    """What the look-alike table shows, from its numbers."""
+    acc = {k: table[k]["accuracy"]["0.025km"] for k in (VPR, FUSED)}
+    fx, ft = table[FUSED]["fixes"], table[TRUSTED]["fixes"]
+    prec = "-" if ft["precision25_pct"] is None else f"{ft['precision25_pct']:.0f} %"
+    return (f"      at 25 m the prior turns {acc[FUSED] - acc[VPR]:+.1f} points of wrong "
+            f"look-alikes into right answers;\n      fixes by default: {fx['n']}. A place and "
+            "its look-alike give about the same inliers, so only\n      the prior tells them "
+            "apart, and an answer that rests on the prior is no fix unless\n      "
+            f"trust_prior_for_fix is set (last row: {ft['n']} fixes, {prec} of them within "
+            "25 m: as right as the prior)")
+
+
 def run_demo(out: str | Path, with_bag: bool = True) -> int:
     from vlm_vpr_ros.evaluation.lookalike import build_lookalike_map, write_refs
-    from vlm_vpr_ros.evaluation.metrics import format_table
+    from vlm_vpr_ros.evaluation.metrics import format_cells, format_table
     from vlm_vpr_ros.files.atomic import atomic_save_npy
     from vlm_vpr_ros.files.csvio import read_file_column
     from vlm_vpr_ros.localization.localizer import LocalizerConfig
     from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
+    from vlm_vpr_ros.localization.verification.stage import Verifier
     from vlm_vpr_ros.maps.build_images import build_map, read_coords_csv
 
     out = Path(out)
@@ -137,39 +199,61 @@ def run_demo(out: str | Path, with_bag: bool = True) -> int:
     queries = make_queries(out)
     files = read_file_column(queries)
     pipe = LocalizationPipeline.open(map_dir)
-    qdesc = np.stack([pipe.describe(load_image(out / "queries" / f)) for f in files])
+    described = [pipe.describe_query(load_image(out / "queries" / f)) for f in files]
+    qdesc = np.stack([q.desc for q in described])
+    qlocal = [q.local for q in described]  # the same SIFT pass, for verification
     atomic_save_npy(out / "queries_descriptors.npy", qdesc)  # rows of queries.csv
     paper = LocalizerConfig(fusion="paper")
     print(f"[3/{n_steps}] localizing the queries on the demo map ...", flush=True)
-    runs = {VPR: paper, PRIOR: None, PAPER_NO_RR: LocalizerConfig(fusion="paper", rerank=False),
-            PAPER: paper, PAPER_NO_SUB: LocalizerConfig(fusion="paper", use_submaps=False),
-            FUSED: LocalizerConfig(fusion="posterior")}
+    runs = {VPR: Run(paper, prior=False), PRIOR: Run(None),
+            PAPER_NO_RR: Run(LocalizerConfig(fusion="paper", rerank=False)),
+            PAPER: Run(paper), PAPER_NO_SUB: Run(LocalizerConfig(fusion="paper",
+                                                                use_submaps=False)),
+            FUSED: Run(LocalizerConfig(fusion="posterior"), verify=True)}
     (out / "results").mkdir(parents=True, exist_ok=True)
     tables, extras = {}, {}
     tables["map"], extras["map"] = run_step(pipe.map, runs, files, qdesc, queries,
-                                            out / "results")
-    print("\n" + format_table(tables["map"], title=TITLES["map"]) + "\n", flush=True)
+                                            out / "results", pipe.verifier, qlocal)
+    print("\n" + format_table(tables["map"], title=TITLES["map"]), flush=True)
+    print(FIX_MEANING + "\n" + calibration_note(pipe.verifier) + "\n", flush=True)
     print(f"[4/{n_steps}] the look-alike step: 4 mild copies of every shipped image, 2 at its "
           "place and 2 at a look-alike place 5000 km away (284 references) ...", flush=True)
     look = out / "lookalike"
     refs = write_refs(DEMO_DATA / "images", read_coords_csv(DEMO_DATA / "coords.csv"), look)
     look_map = build_lookalike_map(pipe, refs, look / "refs", look / "map")
     (look / "results").mkdir(parents=True, exist_ok=True)
+    look_verifier = Verifier(look_map)
     tables["lookalike"], extras["lookalike"] = run_step(
-        look_map, {VPR: paper, PRIOR: None, PAPER: paper, FUSED: LocalizerConfig()}, files,
-        qdesc, queries, look / "results")
+        look_map, {VPR: Run(paper, prior=False), PRIOR: Run(None), PAPER: Run(paper),
+                   FUSED: Run(LocalizerConfig(), verify=True),
+                   TRUSTED: Run(LocalizerConfig(), verify=True,
+                                status=StatusPolicy(trust_prior_for_fix=True))},
+        files, qdesc, queries, look / "results", look_verifier, qlocal)
     print("\n" + format_table(tables["lookalike"], title=TITLES["lookalike"]))
-    gain = tables["lookalike"][FUSED]["accuracy"]["0.025km"] - \
-        tables["lookalike"][VPR]["accuracy"]["0.025km"]
-    print(f"      at 25 m the prior turns {gain:+.1f} points of wrong look-alikes into fixes\n")
+    print(lookalike_note(tables["lookalike"]) + "\n" + calibration_note(look_verifier) + "\n",
+          flush=True)
     figures = _figures(out, files, extras["lookalike"])
     if with_bag:
         tables["bag"], bag_outputs = _bag_demo(out, map_dir, queries, n_steps)
         figures.update(bag_outputs)
+    head, body = fixes_table(tables)
+    print("\n" + format_cells(head, body, TITLES["fixes"]) + "\n")
     _write_json(out, tables, extras, figures, time.monotonic() - t0)
     print(f"done in {time.monotonic() - t0:.0f} s; tables in {out / 'demo.json'}, outputs in "
           f"{out}/")
     return 0
+
+
+def fixes_table(tables: dict) -> tuple[list[str], list[list[str]]]:
+    """The verified rows of every step, with their accuracy at 25 m and their fix columns (the
+    cells of :func:`~vlm_vpr_ros.evaluation.metrics.table_cells`)."""
+    from vlm_vpr_ros.evaluation.metrics import table_cells
+
+    rows = {f"{label}: {name}": s for step, label in FIX_STEPS
+            for name, s in tables.get(step, {}).items() if s.get("fixes") is not None}
+    head, body = table_cells(rows)
+    keep = [head.index(c) for c in FIX_TABLE_COLUMNS]
+    return [head[i] for i in keep], [[r[i] for i in keep] for r in body]
 
 
 def _figures(out: Path, files: list[str], extras: dict) -> dict:
@@ -212,4 +296,6 @@ def _write_json(out: Path, tables: dict, extras: dict, figures: dict, elapsed: f
     for step, rows in tables.items():
         head, body = table_cells(rows)
         doc["tables"][step] = {"title": TITLES[step], "columns": head, "rows": body}
+    head, body = fixes_table(tables)
+    doc["tables"]["fixes"] = {"columns": head, "rows": body}  # no title: short README
     atomic_write_json(out / "demo.json", doc)

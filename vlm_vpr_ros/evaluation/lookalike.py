@@ -34,6 +34,9 @@ LOOKALIKE_KM = 5000.0
 SECOND_PHOTO_M = 10.0
 #: sub-folders of ``refs/``: two photos at the place, two at the look-alike place
 COPIES = (("place", 0), ("place", 1), ("lookalike", 0), ("lookalike", 1))
+#: leave-one-out queries of the look-alike map's p_correct calibration (build-map takes up to
+#: 400; 100 keep the demo short and give ~70 wrong answers, enough for p_correct >= 0.95)
+LOO_QUERIES = 100
 
 
 @dataclass(frozen=True)
@@ -94,13 +97,22 @@ def write_refs(images_dir: Path, places: list[tuple[str, float, float]], out: Pa
 
 def build_lookalike_map(pipe, refs: list[LookalikeRef], refs_dir: Path, map_dir: Path):
     """Describe the references with ``pipe``'s descriptor and write the map (country submaps,
-    fusion calibration) to ``map_dir``; returns the opened :class:`ReferenceMap`."""
+    fusion calibration, local features from the same SIFT pass and the leave-one-out
+    calibration of ``p_correct`` on :data:`LOO_QUERIES` references, as ``build-map`` does) to
+    ``map_dir``; returns the opened :class:`ReferenceMap`."""
     from vlm_vpr_ros.files.outputs import StagedOutput
+    from vlm_vpr_ros.localization.verification.build import ReferenceExtractor
     from vlm_vpr_ros.maps.assemble import assemble_map
-    from vlm_vpr_ros.maps.build_images import write_map_calibration
+    from vlm_vpr_ros.maps.build_images import write_local_features, write_map_calibration
     from vlm_vpr_ros.maps.reference_map import ReferenceMap
 
-    desc = np.stack([pipe.describe(load_image(refs_dir / r.id)) for r in refs])
+    refx = ReferenceExtractor(pipe.descriptor, "sift")
+    desc, local = [], {}
+    for r in refs:
+        d, f = refx.describe([load_image(refs_dir / r.id)])
+        desc.append(d[0])
+        local[r.id] = f[0]
+    desc = np.stack(desc)
     coords = np.array([(r.lat, r.lon) for r in refs], dtype=np.float64)
     ref_map = assemble_map(desc, coords, [r.id for r in refs], pipe.map.descriptor_identity,
                            pipe.map.descriptor_state, "country",
@@ -109,6 +121,7 @@ def build_lookalike_map(pipe, refs: list[LookalikeRef], refs_dir: Path, map_dir:
     with StagedOutput(map_dir, "map", overwrite=True) as stage:
         ref_map.save(stage.path)
         write_map_calibration(ref_map, desc, coords)
+        write_local_features(ref_map, refx, local.__getitem__, loo_queries=LOO_QUERIES)
         stage.commit(validate=ReferenceMap.load)
     return ReferenceMap.load(map_dir)
 

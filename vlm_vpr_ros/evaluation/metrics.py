@@ -40,25 +40,49 @@ def threshold_label(key: str) -> str:
     return f"{km * 1000:g}m" if km < 1 else key
 
 
+#: columns added to an accuracy table when its summaries carry ``fixes`` (verified runs)
+FIX_COLUMNS = ("fixes", "fix prec 25m", "fix prec 50m")
+
+
+def _pct(v: float | None) -> str:
+    return "-" if v is None else f"{v:.2f}%"
+
+
 def table_cells(rows: dict[str, dict]) -> tuple[list[str], list[list[str]]]:
     """Header and rows (strings) of an accuracy table: one row per named summary (as returned
-    by :func:`summarize`); the columns are the first row's accuracy keys. The printed tables
-    (:func:`format_table`) and the generated docs tables (the demo's JSON) both come from here."""
+    by :func:`summarize`); the columns are the first row's accuracy keys. When any summary has
+    a ``fixes`` entry (:func:`fix_metrics`; None: not verified, shown as ``-``), three columns
+    follow: the share of answers published as a fix and their precision within 25 m and 50 m.
+    The printed tables (:func:`format_table`) and the generated docs tables (the demo's JSON)
+    both come from here."""
     first = next(iter(rows.values()), None)
     keys = list(first["accuracy"]) if first else [f"{t:g}km" for t in THRESHOLDS_KM]
-    head = ["", "n", *(threshold_label(k) for k in keys), "median km"]
+    with_fixes = any("fixes" in s for s in rows.values())
+    head = ["", "n", *(threshold_label(k) for k in keys), "median km",
+            *(FIX_COLUMNS if with_fixes else ())]
     body = []
     for name, s in rows.items():
         med = s.get("median_km")
-        body.append([name, str(s["n"]), *(f"{s['accuracy'][k]:.2f}%" for k in keys),
-                     "-" if med is None else f"{med:.1f}"])
+        cells = [name, str(s["n"]), *(f"{s['accuracy'][k]:.2f}%" for k in keys),
+                 "-" if med is None else f"{med:.1f}"]
+        if with_fixes:
+            fx = s.get("fixes")
+            cells += (["-"] * 3 if fx is None else
+                      [_pct(fx["rate_pct"]), _pct(fx["precision25_pct"]),
+                       _pct(fx["precision50_pct"])])
+        body.append(cells)
     return head, body
 
 
 def format_table(rows: dict[str, dict], title: str = "") -> str:
     """Plain-text table of :func:`table_cells`."""
-    head, body = table_cells(rows)
-    widths = [36, 6] + [9] * (len(head) - 3) + [12]
+    return format_cells(*table_cells(rows), title=title)
+
+
+def format_cells(head: list[str], body: list[list[str]], title: str = "") -> str:
+    """Plain-text table of cells (first column left-aligned, the others right-aligned)."""
+    first = max([36, *(len(r[0]) + 2 for r in body)])
+    widths = [first, 6] + [12 if h == "median km" else max(9, len(h) + 2) for h in head[2:]]
 
     def line(cells: list[str]) -> str:
         return f"{cells[0]:<{widths[0]}}" + "".join(f"{c:>{w}}"
@@ -167,12 +191,19 @@ def verification_metrics(rows: Sequence[dict], truth: Sequence[tuple[float, floa
                 hits[k] += any(x <= radius_m for x in d[:k])
         recall = {f"@{k}": round(100.0 * v / n, 2) for k, v in hits.items()}
     has_status = any(r.get("status") for r in rows)
-    fix_err = [e for r, e in zip(rows, errs) if r.get("status") == "fix"]
-    nf = len(fix_err)
-    fixes = None if not has_status else {
-        "n": nf, "rate_pct": round(100.0 * nf / n, 2) if n else 0.0,
-        "precision25_pct": (round(100.0 * sum(e is not None and e * 1e3 <= 25 for e in fix_err)
-                                  / nf, 2) if nf else None),
-        "precision50_pct": (round(100.0 * sum(e is not None and e * 1e3 <= 50 for e in fix_err)
-                                  / nf, 2) if nf else None)}
+    fixes = fix_metrics([r.get("status", "") for r in rows], errs) if has_status else None
     return {"recall_pct": recall, "fixes": fixes}
+
+
+def fix_metrics(statuses: Sequence[str], errs: Sequence[float | None]) -> dict:
+    """``{"n", "rate_pct", "precision25_pct", "precision50_pct"}``: how many answers have
+    status ``fix`` (the NavSatFix STATUS_FIX rule, docs/verification.md), their share of all
+    rows, and the share of them within 25 m and 50 m of the truth (None without fixes)."""
+    fix_err = [e for s, e in zip(statuses, errs, strict=True) if s == "fix"]
+    n, nf = len(statuses), len(fix_err)
+
+    def precision(m: float) -> float | None:
+        return (round(100.0 * sum(e is not None and e * 1e3 <= m for e in fix_err) / nf, 2)
+                if nf else None)
+    return {"n": nf, "rate_pct": round(100.0 * nf / n, 2) if n else 0.0,
+            "precision25_pct": precision(25.0), "precision50_pct": precision(50.0)}

@@ -69,9 +69,10 @@ def written_by_us(path: Path, kind: str) -> bool:
     if kind == "bag":  # bags made before the marker existed: metadata.yaml + our frames.csv
         return ((path / "metadata.yaml").is_file()
                 and _csv_header(path / "frames.csv")[:3] == ["index", "stamp_ns", "file"])
-    if kind == "evaluation":
+    if kind == "evaluation":  # before the marker: frames.csv without / with stamp_ns
         return ((path / "summary.json").is_file()
-                and _csv_header(path / "frames.csv")[:3] == ["index", "stamp", "key"])
+                and _csv_header(path / "frames.csv")[:3] in (["index", "stamp", "key"],
+                                                             ["index", "stamp", "stamp_ns"]))
     if kind == "shards":  # written by `vlm-vpr describe` before the marker existed
         return _shards_meta(path / "describe.json") or (path / ".progress" / "job.json").is_file()
     return False

@@ -37,10 +37,14 @@ def open_query_descriptors(path: str | Path, n_queries: int, dim: int) -> np.nda
 def localize_descriptors(localizer: Localizer, provider: PriorProvider, files: Sequence[str],
                          descs: np.ndarray, images_dir: str | Path | None = None,
                          prior_timeout_s: float = 60.0, window: int = 4,
-                         verifier: Any = None, policy: Any = None) -> Iterator[dict]:
+                         verifier: Any = None, policy: Any = None,
+                         local: Sequence[Any] | None = None) -> Iterator[dict]:
     """Yield one result row per query (columns of batch.RESULT_FIELDS), in order. With a
-    ``verifier`` and ``images_dir``, answers are verified from the query images (else flagged
-    ``unverified``); statuses follow ``policy`` (default StatusPolicy)."""
+    ``verifier``, answers are verified with the query's local features: ``local`` (rows
+    aligned with ``descs``, e.g. from the descriptor's own SIFT pass,
+    :meth:`LocalizationPipeline.describe_query`) or extracted from the image in
+    ``images_dir``; without either they are flagged ``unverified``. Statuses follow
+    ``policy`` (default StatusPolicy)."""
     from vlm_vpr_ros.localization.pipeline import verify_and_stamp
     from vlm_vpr_ros.localization.verification.status import StatusPolicy
 
@@ -68,9 +72,11 @@ def localize_descriptors(localizer: Localizer, provider: PriorProvider, files: S
         try:
             prior = wait_prior(fut, provider.name, prior_timeout_s)
             hyp = localizer.localize(q, prior)
-            local = (verifier.query_features(image) if verifier is not None and verifier.enabled
-                     and image is not None else None)
-            verify_and_stamp(hyp, local, verifier, localizer, policy)
+            feats = local[i] if local is not None else None
+            if feats is None and verifier is not None and verifier.enabled \
+                    and image is not None:
+                feats = verifier.query_features(image)
+            verify_and_stamp(hyp, feats, verifier, localizer, policy)
         except VlmVprError as exc:
             log.warning("query %s failed: %s", f, exc)
             yield {"file": f, "flags": "error", "prior_reason": str(exc)}

@@ -4,8 +4,9 @@ Query time of a submap grows with its size, so one huge cluster or country (252k
 references in a K=100 MP-16 map) sets the worst case. :func:`split_large` splits such a submap
 into ``ceil(n / cap)`` pieces by K-means on the positions inside it, then halves any piece still
 above the cap (a dense city) at the median of its widest axis, so no piece exceeds the cap;
-pieces keep the parent as their ``group``. The localizer picks the country group first (country maps), then the piece
-nearest to the prior; with K-means maps the nearest piece centroid is the natural choice.
+pieces keep the parent as their ``group``. The localizer picks the country group first (country
+maps), then the piece nearest to the prior; with K-means maps the nearest piece centroid is the
+natural choice.
 """
 
 from __future__ import annotations

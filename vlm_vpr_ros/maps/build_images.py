@@ -238,17 +238,20 @@ def write_map_calibration(ref_map: ReferenceMap, desc: np.ndarray, coords: np.nd
 
 
 def write_local_features(ref_map: ReferenceMap, refx: Any, features_of: Any,
-                         progress: bool = False) -> None:
+                         progress: bool = False, loo_queries: int | None = None) -> None:
     """Store the references' local features in the saved map and calibrate ``p_correct`` by
-    leave-one-out on them (docs/verification.md)."""
-    from vlm_vpr_ros.localization.verification.build import calibrate_map, store_features
+    leave-one-out on them (docs/verification.md; ``loo_queries``: at most this many queries,
+    default :data:`~vlm_vpr_ros.localization.verification.build.LOO_QUERIES`)."""
+    from vlm_vpr_ros.localization.verification.build import (LOO_QUERIES, calibrate_map,
+                                                             store_features)
 
     t0 = time.monotonic()
     store_features(ref_map, features_of, refx)
     log.info("local features stored (%s, %.0f kB per reference), %.1f s",
              refx.preset.name, ref_map.manifest["local_features"]["bytes"]
              / max(1, ref_map.n_references) / 1e3, time.monotonic() - t0)
-    calibrate_map(ref_map, progress=progress, matcher_options=refx.matcher_options)
+    calibrate_map(ref_map, loo_queries or LOO_QUERIES, progress=progress,
+                  matcher_options=refx.matcher_options)
 
 
 class ChunkFeatures:

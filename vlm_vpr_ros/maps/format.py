@@ -11,8 +11,9 @@ files up to :data:`SMALL_FILE_BYTES` are checked whole against their sha256; lar
 spaced between; the first page of a ``.npy``/FAISS file holds its header and first rows). A file
 that differs anywhere in a sampled page, or whose first rows differ (any swap), is caught; a
 change confined to unsampled pages is left to ``map verify``. Maps written before fingerprints
-existed have no ``sample``: their small files are still checked by sha256, the others by size. The layouts of the two format versions are described in
-:mod:`vlm_vpr_ros.maps.store` (version 2, written today) and :mod:`vlm_vpr_ros.maps.v1`.
+existed have no ``sample``: their small files are still checked by sha256, the others by size.
+The layouts of the two format versions are described in :mod:`vlm_vpr_ros.maps.store`
+(version 2, written today) and :mod:`vlm_vpr_ros.maps.v1`.
 """
 
 from __future__ import annotations

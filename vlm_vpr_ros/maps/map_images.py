@@ -19,6 +19,20 @@ from vlm_vpr_ros.maps.transaction import Transaction, edit_lock
 IMAGES_DIR = "images"
 
 
+def images_folder(map_dir: str | os.PathLike[str] | None, manifest: Mapping[str, Any],
+                  override: str | os.PathLike[str] = "") -> Path | None:
+    """Where a map's reference images are: ``override`` when given (the node's
+    ``reference_images_dir``, ``--reference-images``: the folder the map was built from), else
+    the map's own images folder (teach maps keep their pictures), else None. Verification of
+    maps without stored features, ``--save-matches`` and the node's debug view all look here."""
+    if override:
+        return Path(override).expanduser()
+    entry = manifest.get("images") or {}
+    if map_dir is not None and entry:
+        return Path(map_dir) / entry.get("folder", IMAGES_DIR)
+    return None
+
+
 def image_index(map_dir: Path, manifest: Mapping[str, Any]) -> dict[str, dict]:
     """``{id: {"bytes", "sha256"}}`` of the images a map holds ({} when it holds none)."""
     entry = manifest.get("images")

@@ -281,7 +281,8 @@ def _deep_identity(name: str, config: dict) -> dict:
 def read_aligned(source: DescriptorSource, ids: list[str]) -> tuple[np.ndarray, np.ndarray]:
     """In-memory ``(feats (n, dim) float32, ok (n,) bool)`` aligned with ``ids`` (the CSV's
     ``file`` column): by id when the shards carry ids, else by order. Rows without a
-    descriptor are zero and not ok. For small sources; maps/build_descriptors.py streams large ones."""
+    descriptor are zero and not ok. For small sources; maps/build_descriptors.py streams large
+    ones."""
     feats = np.zeros((len(ids), source.dim), np.float32)
     ok = np.zeros(len(ids), bool)
     if not source.has_ids:

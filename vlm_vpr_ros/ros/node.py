@@ -38,7 +38,7 @@ from rclpy.task import Future
 from vlm_vpr_ros.errors import ConfigError, VlmVprError
 from vlm_vpr_ros.runtime.params import requested_parameters
 from vlm_vpr_ros.runtime.worker import MAX_WAITERS
-from vlm_vpr_ros.ros.wiring import _Wiring, image_qos  # noqa: F401
+from vlm_vpr_ros.ros.wiring import _Wiring
 from vlm_vpr_ros.redact import redact
 
 NODE_NAME = "vlm_vpr_node"
@@ -197,7 +197,7 @@ def _run(cls: type, args: list[str] | None) -> int:
 
 def main(args: list[str] | None = None) -> int:
     """Console script ``vlm_vpr_node`` (``--ros-args -p name:=value`` / ``--params-file``)."""
-    if args is None and "--lifecycle" in sys.argv[1:]:  # python -m vlm_vpr_ros.ros.node --lifecycle
+    if args is None and "--lifecycle" in sys.argv[1:]:  # python -m ...ros.node --lifecycle
         return lifecycle_main([a for a in sys.argv if a != "--lifecycle"])
     return _run(VlmVprNode, args)
 

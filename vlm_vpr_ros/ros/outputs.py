@@ -45,8 +45,7 @@ def output_qos(durability: str) -> QoSProfile:
 
 def fix_policy(cfg: NodeConfig) -> FixPolicy:
     return FixPolicy(cfg.fallback_status, cfg.fallback_min_sigma_m, cfg.altitude_m,
-                     cfg.altitude_sigma_m, cfg.fix_max_sigma_m, cfg.fix_min_p_correct,
-                     cfg.trust_prior_for_fix, cfg.trust_operator_prior)
+                     cfg.altitude_sigma_m, cfg.status_policy())
 
 
 class Outputs:
@@ -92,7 +91,7 @@ class Outputs:
         fields = None
         if hyp is not None:
             fields = fix_fields(hyp, policy)
-            self.fix.publish(navsat_fix(hyp, stamp, frame_id, policy))
+            self.fix.publish(navsat_fix(hyp, stamp, frame_id, fields=fields))
             wanted = cfg.pose_on == "every_fix" or out.trigger == "relocalize"
             if self.pose is not None and fields.status == STATUS_FIX and wanted:
                 try:
@@ -110,18 +109,22 @@ class Outputs:
     def _publish_debug(self, out: QueryOutcome, fields: Any, stamp: int, frame_id: str,
                        hardware_id: str) -> None:
         hyp = out.hypothesis
+        matches = None
         if hyp is None:
             caption, ref, label = debug_view.caption(None, "", 0.0, out.error), None, ""
         else:
             status = "STATUS_FIX" if fields.status == STATUS_FIX else "STATUS_NO_FIX"
             caption = debug_view.caption(hyp, status, fields.sigma_m)
             ref, label = self.references.load(hyp.ref_id), f"reference {hyp.ref_id}"
-        picture = debug_view.render(out.rgb, ref, caption, label)
+            matches = debug_view.match_pixels(out.matches, out.rgb.shape, ref)
+        picture = debug_view.render(out.rgb, ref, caption, label, matches)
         self.debug_image.publish(compressed_jpeg(debug_view.jpeg(picture), stamp, frame_id))
         if hyp is not None:
+            name = self.node.get_name()
             self.candidates.publish(candidates_array(
-                stamp, f"{self.node.get_name()}: candidate", hardware_id,
-                debug_view.candidate_rows(hyp)))
+                stamp, f"{name}: candidate", hardware_id, debug_view.candidate_rows(hyp),
+                (f"{name}: answer", fields.status == STATUS_FIX,
+                 debug_view.answer_row(hyp, status, fields.reason, fields.sigma_m))))
 
     def publish_diagnostics(self, stamp_ns: int, level: str, message: str,
                             values: dict[str, Any], hardware_id: str) -> None:

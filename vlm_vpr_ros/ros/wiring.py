@@ -140,7 +140,9 @@ class _Wiring(_Parameters):
             self.pipeline, self._provider, runtime_config(cfg), decode=message_to_rgb,
             on_outcome=self._publish_outcome, encoded=encoded_bytes, clock=self._now_s,
             stats=self._stats)
-        self.runtime.update(localizer=cfg.localizer_config())
+        # settings tuned while inactive (lifecycle) reach the new worker too
+        self.runtime.update(localizer=cfg.localizer_config(), status=cfg.status_policy(),
+                            verify_top_k=cfg.verify_top_k)
         self.runtime.keep_images = cfg.publish_debug
         topics = []
         try:

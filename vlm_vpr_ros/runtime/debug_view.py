@@ -5,8 +5,12 @@ with a caption (status, sigma, reference, prior, posterior weight) and, when the
 them, verified matches as lines between the two images. :class:`ReferenceImages` finds the
 reference pictures: the map's own ``images/`` folder (teach maps keep them) or a folder the
 user names (``reference_images_dir``: the folder the map was built from). :func:`candidate_rows`
-lists the best candidates with their posterior weights and inliers. Rendering runs only when
-``publish_debug`` is on (the node then asks the runtime to keep the decoded frame).
+lists the best candidates with their posterior weights and inliers, :func:`answer_row` the
+verified answer (status, ``p_correct``, inliers). :func:`winner_matches` takes the inlier matches
+of the verified answer out of the query (worker side, cheap: one row of the map's feature
+store); :func:`match_pixels` places them on the two pictures. Rendering runs only when
+``publish_debug`` is on (the node then asks the runtime to keep the decoded frame and the
+matches).
 """
 
 from __future__ import annotations
@@ -41,13 +45,11 @@ class ReferenceImages:
     @classmethod
     def for_map(cls, map_path: str | Path | None, manifest: Mapping[str, Any],
                 override: str = "") -> "ReferenceImages":
-        """``override`` when given, else the map's own images folder when it keeps one."""
-        if override:
-            return cls(override)
-        entry = manifest.get("images") or {}
-        if map_path is not None and entry.get("folder"):
-            return cls(Path(map_path) / entry["folder"])
-        return cls(None)
+        """``override`` when given, else the map's own images folder when it keeps one
+        (:func:`vlm_vpr_ros.maps.map_images.images_folder`, as verification looks)."""
+        from vlm_vpr_ros.maps.map_images import images_folder
+
+        return cls(images_folder(map_path, manifest, override))
 
     def load(self, ref_id: str) -> tuple[np.ndarray, float] | None:
         """(RGB thumbnail, thumbnail px per original px), or None when unavailable."""
@@ -108,6 +110,33 @@ def render(query_rgb: np.ndarray, reference: tuple[np.ndarray, float] | None,
     return canvas
 
 
+def winner_matches(verifier: Any, query: Any, hyp: Any) -> np.ndarray | None:
+    """The verified answer's inlier matches as fractions of each image, (n, 4) float32
+    ``qx, qy, rx, ry`` (``query``: the query's LocalFeatures; None when the answer was not
+    verified). A keypoint's place in the extraction frame, as a fraction of the frame's width
+    and height, is its place in the original image: the frame keeps the aspect ratio."""
+    if verifier is None or query is None or not hyp.matches or not hyp.candidates:
+        return None
+    pairs = hyp.matches[0]  # aligned with hyp.candidates[0], the answer
+    ref = verifier.reference_features(hyp.candidates[:1])[0]
+    if ref is None or not len(pairs):
+        return None
+    q = query.keypoints[pairs[:, 0]] / np.maximum(np.asarray(query.size, np.float32), 1.0)
+    r = ref.keypoints[pairs[:, 1]] / np.maximum(np.asarray(ref.size, np.float32), 1.0)
+    return np.hstack([q, r]).astype(np.float32)
+
+
+def match_pixels(fractions: np.ndarray | None, query_shape: tuple[int, ...],
+                 reference: tuple[np.ndarray, float] | None) -> np.ndarray | None:
+    """:func:`winner_matches` in pixels of the original query and reference images (what
+    :func:`render` draws); None without matches or without the reference picture."""
+    if fractions is None or reference is None or not len(fractions):
+        return None
+    thumb, s = reference
+    size = np.array([query_shape[1], query_shape[0], thumb.shape[1] / s, thumb.shape[0] / s])
+    return np.asarray(fractions, np.float64) * size
+
+
 def jpeg(rgb: np.ndarray, quality: int = 85) -> bytes:
     return encode_jpeg(rgb, quality)
 
@@ -132,6 +161,17 @@ def candidate_rows(hyp: Any, limit: int = MAX_CANDIDATES_LISTED) -> list[dict[st
     return rows
 
 
+def answer_row(hyp: Any, status: str, reason: str, sigma_m: float) -> dict[str, str]:
+    """The answer of a query for ``~/candidates``: status (and why not a fix), the verified
+    evidence (``p_correct``, inliers, inlier ratio) and the published sigma."""
+    return {"status": status, "status_reason": reason, "ref_id": hyp.ref_id,
+            "p_correct": _num(hyp.p_correct, ".4f"),
+            "inliers": str(hyp.inliers) if hyp.inliers >= 0 else "",
+            "inlier_ratio": _num(hyp.inlier_ratio, ".2f"), "sigma_m": _num(sigma_m, ".1f"),
+            "verification": hyp.verification or "unverified",
+            "flags": "|".join(hyp.flags)}
+
+
 def caption(hyp: Any, status: str, sigma_m: float, error: str = "") -> list[str]:
     """Two caption lines for a query's outcome (``hyp`` None: the error)."""
     if hyp is None:
@@ -142,4 +182,6 @@ def caption(hyp: Any, status: str, sigma_m: float, error: str = "") -> list[str]
              if hyp.prior is not None else "no prior: global retrieval")
     flags = f" FLAGGED [{'|'.join(hyp.flags)}]" if hyp.flagged else ""
     first = f"{status} sigma {sigma_m:.0f} m  ref {hyp.ref_id} (submap {hyp.submap}){weight}"
-    return [first[:110], f"{prior}, {len(hyp.candidates)} candidates{flags}"[:110]]
+    verified = (f"p_correct {_num(hyp.p_correct, '.3f') or '-'}, {hyp.inliers} inliers; "
+                if hyp.inliers >= 0 else "")
+    return [first[:110], f"{verified}{prior}, {len(hyp.candidates)} candidates{flags}"[:110]]

@@ -6,10 +6,12 @@ schema with a ``ParameterDescriptor`` (type, description, range, read-only), so
 ``ros2 param describe`` and docs/node.md show the same text. Parameters marked ``writable`` may
 change at runtime (``ros2 param set``; :data:`RUNTIME_WRITABLE`), validated by the same
 :func:`from_params`; the others are structural and :func:`refusal_reason` says how to change
-them. Provider settings are nested
-under ``prior.`` (``prior.base_url``, ``prior.model``, ``prior.lat`` ...) and descriptor options
-under ``descriptor_options.``; both are passed through to the registries, which reject unknown
-keys. Unknown top-level names and wrongly typed values raise :class:`ConfigError`.
+them. Provider settings are nested under ``prior.`` (``prior.base_url``, ``prior.model``,
+``prior.lat`` ...), descriptor options under ``descriptor_options.`` and the options of
+verification's learned local features and matcher under ``feature_options.`` /
+``matcher_options.`` (``weights`` paths, ``device``); all are passed through to the registries,
+which reject unknown keys. Unknown top-level names and wrongly typed values raise
+:class:`ConfigError`.
 """
 
 from __future__ import annotations
@@ -22,20 +24,17 @@ from dataclasses import dataclass, field
 from typing import Any, Mapping
 
 from vlm_vpr_ros.errors import ConfigError
-from vlm_vpr_ros.geodesy import MAX_DISTANCE_KM
 from vlm_vpr_ros.localization.localizer import FUSION_MODES, LocalizerConfig
 from vlm_vpr_ros.localization.verification.stage import VerificationConfig
-from vlm_vpr_ros.localization.verification.status import StatusPolicy
+from vlm_vpr_ros.localization.verification.status import MAX_SIGMA_M, StatusPolicy
+from vlm_vpr_ros.runtime.worker import MODES
 
-MODES = ("continuous", "on_trigger")
 QOS_CHOICES = ("sensor_data", "best_effort", "reliable")
 FALLBACK_STATUS = ("no_fix", "fix")
 DURABILITY = ("volatile", "transient_local")
 POSE_FRAMES = ("utm", "local_enu", "none")
 POSE_ON = ("relocalize", "every_fix")
-NESTED = ("prior", "descriptor_options")
-#: the largest radius a fix may carry (half the Earth's circumference, m)
-MAX_SIGMA_M = MAX_DISTANCE_KM * 1000.0
+NESTED = ("prior", "descriptor_options", "feature_options", "matcher_options")
 #: parameters every rclpy node has
 ROS_STANDARD = frozenset({"use_sim_time", "start_type_description_service"})
 
@@ -169,10 +168,18 @@ class NodeConfig:
     prior: dict = field(default_factory=dict, metadata={"doc": "prior provider settings"})
     descriptor_options: dict = field(default_factory=dict,
                                      metadata={"doc": "descriptor settings (device, weights)"})
+    #: verification's learned local features / matcher (e.g. weights paths, device), as the
+    #: CLI's --feature-option / --matcher-option; never stored in the map
+    feature_options: dict = field(default_factory=dict, metadata={
+        "doc": "local-feature settings of verification (learned features: weights, device)"})
+    matcher_options: dict = field(default_factory=dict, metadata={
+        "doc": "matcher settings of verification (LightGlue: weights, device)"})
 
     def verification_config(self) -> VerificationConfig:
         return VerificationConfig(self.verify_top_k, self.verification_required,
-                                  os.path.expanduser(self.reference_images_dir))
+                                  os.path.expanduser(self.reference_images_dir),
+                                  feature_options=_expanded(self.feature_options),
+                                  matcher_options=_expanded(self.matcher_options))
 
     def status_policy(self) -> StatusPolicy:
         return StatusPolicy(self.fix_min_p_correct, self.fix_max_sigma_m,
@@ -182,6 +189,12 @@ class NodeConfig:
         return LocalizerConfig(top_p=self.top_p, fusion=self.fusion,
                                use_submaps=self.use_submaps, rerank=self.rerank,
                                n_submaps=self.n_submaps)
+
+
+def _expanded(options: Mapping[str, Any]) -> dict[str, Any]:
+    """Options with ``~`` expanded in ``weights`` paths (as for map_dir)."""
+    return {k: os.path.expanduser(v) if k == "weights" and isinstance(v, str) else v
+            for k, v in options.items()}
 
 
 #: scalar parameters: name → spec, in declaration order
@@ -197,7 +210,8 @@ RUNTIME_WRITABLE = frozenset(n for n, p in PARAMETER_SPECS.items() if not p.read
 PARAMETERS: dict[str, tuple[Any, str]] = {n: (p.default, p.doc)
                                           for n, p in PARAMETER_SPECS.items()}
 _TYPES = {f.name: f.type for f in dataclasses.fields(NodeConfig)}
-_MAP_SETTINGS = ("map_dir", "descriptor", "verify_map", "descriptor_options")
+_MAP_SETTINGS = ("map_dir", "descriptor", "verify_map", "descriptor_options",
+                 "feature_options", "matcher_options")
 
 
 def refusal_reason(name: str) -> str:
@@ -244,7 +258,7 @@ def from_params(values: Mapping[str, Any], check_paths: bool = True) -> NodeConf
             continue  # declared by rclpy itself
         else:
             raise ConfigError(f"unknown parameter {key!r}; valid: {', '.join(PARAMETERS)}, "
-                              f"prior.<setting>, descriptor_options.<setting>")
+                              + ", ".join(f"{n}.<setting>" for n in NESTED))
     cfg = NodeConfig(**flat, **nested)
     validate(cfg, check_paths)
     return cfg

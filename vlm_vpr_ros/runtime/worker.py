@@ -35,6 +35,7 @@ from vlm_vpr_ros.errors import ConfigError, ImageDecodeError, VlmVprError
 from vlm_vpr_ros.localization.localizer import LocalizerConfig
 from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
 from vlm_vpr_ros.priors.base import PriorProvider, PriorQuery, PriorResult
+from vlm_vpr_ros.runtime import debug_view
 from vlm_vpr_ros.runtime.relocalize import (RelocalizeKind, RelocalizeTicket,
                                             outcome_summary)
 from vlm_vpr_ros.runtime.stats import RuntimeStats, Throttle
@@ -93,6 +94,9 @@ class QueryOutcome:
     finished: float = 0.0
     timings_ms: dict[str, float] = field(default_factory=dict)
     rgb: np.ndarray | None = field(default=None, repr=False)  # kept when keep_images is set
+    #: the answer's inlier matches, (n, 4) fractions of the query and reference images
+    #: (debug_view.winner_matches; only with keep_images and a verified answer)
+    matches: np.ndarray | None = field(default=None, repr=False)
 
 
 class QueryRuntime:
@@ -377,6 +381,8 @@ class QueryRuntime:
             return
         t4 = time.monotonic()
         out.hypothesis = hyp
+        if self.keep_images:  # the debug view draws the answer's verified matches
+            out.matches = debug_view.winner_matches(pipe.verifier, query.local, hyp)
         out.timings_ms = {
             "decode_ms": (t1 - t0) * 1e3, "descriptor_ms": (t2 - t1) * 1e3,
             "prior_wait_ms": (t3 - t2) * 1e3,

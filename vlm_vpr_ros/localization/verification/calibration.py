@@ -35,7 +35,8 @@ import numpy as np
 
 from vlm_vpr_ros.errors import MapError
 from vlm_vpr_ros.geodesy import EARTH_RADIUS_KM, haversine_km, latlon_to_unit
-from vlm_vpr_ros.localization.verification.evidence import EvidenceConfig, weigh
+from vlm_vpr_ros.localization.verification.evidence import AMBIGUOUS_RATIO, EvidenceConfig, \
+    weigh
 from vlm_vpr_ros.maps.documents import load_document, save_document
 from vlm_vpr_ros.types import LocalFeatures
 
@@ -44,10 +45,6 @@ log = logging.getLogger(__name__)
 VERIFY_CAL_FILE = "verification.json"
 VERIFY_CAL_FORMAT = "vlm_vpr_ros.verification_calibration"
 VERIFY_CAL_VERSION = 1
-#: below this inlier ratio another place holds at least half the winner's evidence: the
-#: answer is a near tie, and p_correct is capped at ratio / (1 + ratio) (<= 2/3) whatever the
-#: map's wrong answers look like (a sparse map's leave-one-out has few strong look-alikes)
-AMBIGUOUS_RATIO = 2.0
 
 
 @dataclass

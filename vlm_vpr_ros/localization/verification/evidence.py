@@ -7,7 +7,13 @@ Input: the top-K candidates in posterior order, their positions and geometric in
   (``competitor_floor``: MAGSAC finds 8-13 "inliers" among random matches); with a prior, only
   among those the prior makes less than ``prior_gate`` times less likely than the most likely
   such candidate. Ties go to the earlier (more probable) candidate; with none above the noise
-  level the posterior's best stays the answer.
+  level the posterior's best stays the answer. **Near ties between places, with a prior**:
+  when a candidate farther than ``place_radius_m`` from that winner holds more than
+  1 / :data:`AMBIGUOUS_RATIO` of its inliers, geometry cannot tell the two places apart (the
+  answer's ``p_correct`` is capped below 2/3 anyway); the place that comes first in posterior
+  order (visual similarity and prior) is the answer, represented by its candidate with the most
+  inliers. Without a prior the most inliers win, as in hloc. (A place and its look-alike
+  elsewhere give about the same inliers: the max alone would pick either of them.)
 * **Inlier ratio** (the score): winner inliers / (1 + the most inliers of any candidate farther
   than ``place_radius_m`` from the winner), the competitor count floored at the noise level so
   that a winner with a handful of chance inliers never scores high against candidates without
@@ -28,6 +34,11 @@ import numpy as np
 from vlm_vpr_ros.errors import ConfigError
 from vlm_vpr_ros.geodesy import EARTH_RADIUS_KM, latlon_to_unit
 
+#: below this inlier ratio another place holds at least half the winner's evidence: the
+#: answer is a near tie (with a prior, the posterior decides between the tied places), and
+#: p_correct is capped at ratio / (1 + ratio) (<= 2/3) whatever the map's wrong answers look
+#: like (a sparse map's leave-one-out has few strong look-alikes)
+AMBIGUOUS_RATIO = 2.0
 
 @dataclass(frozen=True)
 class EvidenceConfig:
@@ -75,6 +86,8 @@ def weigh(lat: np.ndarray, lon: np.ndarray, inliers: np.ndarray,
     winner = int(strong[np.argmax(inl[strong])]) if len(strong) else 0  # first max: earliest
     xyz = latlon_to_unit(np.asarray(lat, np.float64), np.asarray(lon, np.float64))
     cos_r = math.cos(cfg.place_radius_m / 1000.0 / EARTH_RADIUS_KM)
+    if len(strong) and logp is not None:
+        winner = _first_of_near_tie(winner, strong, inl, xyz, cos_r)
     far = (xyz @ xyz[winner]) < cos_r
     comp = far & (inl >= 0)
     gate = np.zeros(n, bool)
@@ -88,6 +101,20 @@ def weigh(lat: np.ndarray, lon: np.ndarray, inliers: np.ndarray,
     ev = Evidence(winner, iw, cg, cu, 0.0, 0.0, order, int(gate.sum()))
     ev.score, ev.score_ungated = ev.ratio(floor, True), ev.ratio(floor, False)
     return ev
+
+
+def _first_of_near_tie(winner: int, strong: np.ndarray, inl: np.ndarray, xyz: np.ndarray,
+                       cos_r: float) -> int:
+    """The winner after a near tie between places (module docstring): the strongest candidate
+    of the place that comes first in posterior order among ``winner``'s and those of the other
+    places holding more than 1 / AMBIGUOUS_RATIO of its inliers."""
+    here = (xyz[strong] @ xyz[winner]) >= cos_r
+    rivals = strong[(inl[strong] * AMBIGUOUS_RATIO > inl[winner]) & ~here]
+    if not len(rivals) or rivals.min() > strong[here].min():
+        return winner
+    first = int(rivals.min())
+    same = strong[(xyz[strong] @ xyz[first]) >= cos_r]
+    return int(same[np.argmax(inl[same])])
 
 
 def spread_radii(lat: np.ndarray, lon: np.ndarray, winner: int,

@@ -109,10 +109,13 @@ class Verifier:
             self.preset = preset_for_map("sift", ref_map.descriptor_identity)
             log.info("%s stores no local features: verifying against the images in %s",
                      root, self.images_root)
+        fopts = {**config.feature_options, **dict(feature_options or {})}
+        mopts = {**config.matcher_options, **dict(matcher_options or {})}
         try:
-            self._build({**config.feature_options, **dict(feature_options or {})},
-                        {**config.matcher_options, **dict(matcher_options or {})})
+            self._build(fopts, mopts)
         except (MapError, ConfigError, DescriptorError) as exc:
+            if isinstance(exc, ConfigError) and (fopts or mopts):
+                raise  # the user's options do not fit the map's features: say so, at once
             msg = f"{root}: local features unusable: {exc}"
             if config.required:
                 raise MapError(msg) from None
@@ -148,15 +151,12 @@ class Verifier:
             competitor_floor=int((doc or {}).get("competitor_floor", 12)))
 
     def _images_root(self, root: Path | None) -> Path | None:
-        if self.config.images_dir:
-            d = Path(self.config.images_dir).expanduser()
-            if not d.is_dir():
-                raise ConfigError(f"reference images folder {d} does not exist")
-            return d
-        images = self.map.manifest.get("images")
-        if root is not None and images:
-            return root / images.get("folder", "images")
-        return None
+        from vlm_vpr_ros.maps.map_images import images_folder
+
+        d = images_folder(root, self.map.manifest, self.config.images_dir)
+        if self.config.images_dir and not d.is_dir():
+            raise ConfigError(f"reference images folder {d} does not exist")
+        return d
 
     # -- properties ------------------------------------------------------------------------
     @property
