@@ -13,8 +13,10 @@ Policy (what ``robot_localization``'s navsat_transform expects; docs/verificatio
   with latitude/longitude still filled so people and loggers see the guess. navsat_transform
   skips NO_FIX messages and its *first* accepted fix becomes the datum of the UTM→world
   transform, so only fixes known to be right may reach it. ``fallback_status="fix"``
-  publishes the others as STATUS_FIX too (their covariance then tells the filter how little to
-  trust them), with σ at least ``fallback_min_sigma_m`` (default 0: the honest σ).
+  publishes the others as STATUS_FIX too (their covariance then tells the filter how little
+  to trust them), with σ at least ``fallback_min_sigma_m`` (default 0: the honest σ); the
+  pipeline stamps that decision on the answer (``stamp_status``), so the relocalize answer and
+  diagnostics say the same.
 * Covariance: ENU, row-major, m², diagonal ``[σ², σ², σz²]``, ``COVARIANCE_TYPE_APPROXIMATED``,
   σ = ``max(r68 / 1.5096, r95 / 2.4477)`` of the answer's radii (a verified fix: tens of
   metres; an unverified answer: the posterior's radius), always finite.
@@ -25,12 +27,13 @@ Policy (what ``robot_localization``'s navsat_transform expects; docs/verificatio
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
-from vlm_vpr_ros.localization.verification.status import (K68, K95, MAX_SIGMA_M, StatusPolicy,
-                                                          finite_sigma, fix_status,
-                                                          horizontal_sigma)
+from vlm_vpr_ros.localization.verification.status import (FALLBACK, K68, K95, MAX_SIGMA_M,
+                                                          StatusPolicy, finite_sigma,
+                                                          horizontal_sigma, stamp_status)
 from vlm_vpr_ros.types import Hypothesis
 
 __all__ = ["COVARIANCE_TYPE_APPROXIMATED", "FixFields", "FixPolicy", "K68", "K95",
@@ -44,11 +47,9 @@ COVARIANCE_TYPE_APPROXIMATED = 1
 
 @dataclass(frozen=True)
 class FixPolicy:
-    fallback_status: str = "no_fix"  # status of fixes failing the σ rule: "no_fix" or "fix"
-    fallback_min_sigma_m: float = 0.0  # least σ of a fix failing the rule (0: its real σ)
     altitude_m: float = 0.0
     altitude_sigma_m: float = 1000.0
-    #: the status rule for answers the pipeline did not stamp (``hyp.status`` empty)
+    #: the status rule (and its fallback) for answers the pipeline did not stamp
     status: StatusPolicy = field(default_factory=StatusPolicy)
 
 
@@ -68,23 +69,20 @@ class FixFields:
 
 
 def fix_fields(hyp: Hypothesis, policy: FixPolicy | None = None) -> FixFields:
-    """Status, covariance and position of the fix for ``hyp`` under ``policy``."""
+    """Status, covariance and position of the fix for ``hyp``: the status the pipeline stamped
+    (one decision per answer, fallback included), or ``policy.status`` applied to a copy."""
     policy = policy or FixPolicy()
+    if hyp.status not in ("fix", "no_fix"):
+        hyp = stamp_status(dataclasses.replace(hyp), policy.status)
     sigma = horizontal_sigma(hyp)
-    if hyp.status in ("fix", "no_fix"):  # stamped by the pipeline (one decision per answer)
-        precise, reason = hyp.status == "fix", hyp.status_reason
-    else:
-        precise, reason = fix_status(hyp, policy.status)
-    status = STATUS_FIX
-    if not precise:
-        sigma = finite_sigma(max(sigma, policy.fallback_min_sigma_m))
-        status = (STATUS_FIX if policy.fallback_status == "fix" and "no_match" not in hyp.flags
-                  else STATUS_NO_FIX)
+    fix = hyp.status == "fix"
+    precise = fix and not hyp.status_reason.startswith(FALLBACK)
     var = sigma * sigma
     var_z = finite_sigma(policy.altitude_sigma_m) ** 2
     cov = (var, 0.0, 0.0, 0.0, var, 0.0, 0.0, 0.0, var_z)
-    return FixFields(float(hyp.lat), float(hyp.lon), float(policy.altitude_m), status, sigma,
-                     cov, hyp.flagged, precise, reason)
+    return FixFields(float(hyp.lat), float(hyp.lon), float(policy.altitude_m),
+                     STATUS_FIX if fix else STATUS_NO_FIX, sigma, cov, hyp.flagged, precise,
+                     hyp.status_reason)
 
 
 def navsat_fix(hyp: Hypothesis, stamp_ns: int, frame_id: str,

@@ -9,9 +9,9 @@ import pytest
 
 from msg_adapters.diagnostics import diagnostic_array, format_value, level_name, status_values
 from msg_adapters.navsat import (K68, K95, MAX_SIGMA_M, STATUS_FIX, STATUS_NO_FIX, FixPolicy,
-                                 fix_fields, navsat_fix)
+                                 fix_fields, horizontal_sigma, navsat_fix)
 from vlm_vpr_ros.errors import ConfigError
-from vlm_vpr_ros.localization.verification.status import StatusPolicy
+from vlm_vpr_ros.localization.verification.status import StatusPolicy, stamp_status
 from vlm_vpr_ros.priors.base import Prior, PriorResult
 from vlm_vpr_ros.types import Hypothesis
 
@@ -62,16 +62,22 @@ def test_status_rule_needs_verified_p_correct_and_small_sigma():
     assert g.status == STATUS_NO_FIX and g.reason.startswith("sigma 3677 m > 50")
     assert g.sigma_m == pytest.approx(9000.0 / K95)  # honest covariance, no inflation
     assert fix_fields(hyp(sigma=3000.0), policy(fix_max_sigma_m=5000.0)).status == STATUS_FIX
-    # fallback_status="fix" publishes the others as FIX with a least sigma
-    h = fix_fields(hyp(sigma=3000.0, r95=9000.0),
-                   FixPolicy(fallback_status="fix", fallback_min_sigma_m=1e5,
-                             altitude_m=35.0, altitude_sigma_m=10.0))
-    assert h.status == STATUS_FIX and h.sigma_m == 1e5 and not h.precise
-    assert h.altitude == 35.0 and h.covariance[8] == 100.0
+    # fallback_status="fix" publishes the others as FIX with a least sigma, decided once: the
+    # answer itself carries the status and the widened radii every other output reports
+    wide = hyp(sigma=3000.0, r95=9000.0)
+    stamp_status(wide, StatusPolicy(fallback_status="fix", fallback_min_sigma_m=1e5))
+    assert wide.status == "fix" and wide.status_reason == "fallback: sigma 3677 m > 50 m"
+    assert horizontal_sigma(wide) == pytest.approx(1e5)
+    h = fix_fields(wide, FixPolicy(altitude_m=35.0, altitude_sigma_m=10.0))
+    assert h.status == STATUS_FIX and h.sigma_m == pytest.approx(1e5) and not h.precise
+    assert h.altitude == 35.0 and h.covariance[8] == 100.0 and h.reason.startswith("fallback")
+    # an unstamped answer gets the same decision from the policy
+    g = fix_fields(hyp(sigma=3000.0, r95=9000.0), policy(fallback_status="fix"))
+    assert g.status == STATUS_FIX and g.sigma_m == pytest.approx(9000.0 / K95)
     # no match: never a fix, position NaN
     nm = Hypothesis(lat=math.nan, lon=math.nan, ref_id="", submap="", uncertainty_m=2e7,
                     flags=("no_prior", "no_match"), radius95_m=2e7)
-    for pol in (FixPolicy(), FixPolicy(fallback_status="fix")):
+    for pol in (FixPolicy(), policy(fallback_status="fix")):
         x = fix_fields(nm, pol)
         assert x.status == STATUS_NO_FIX and all(math.isfinite(v) for v in x.covariance)
 

@@ -112,6 +112,33 @@ def test_fix_near_truth_with_fixed_prior(pipeline, image):
     assert outcome_summary(out, 0.0)[1].startswith("relocalized frame 42.000000007:")
 
 
+def test_fallback_fix_says_the_same_everywhere(pipeline, image):
+    """fallback_status: fix publishes an answer failing the status rule as STATUS_FIX with a
+    least sigma: the relocalize answer and diagnostics say that status and that sigma too
+    (and diagnostics WARN: it is not a precise fix)."""
+    from msg_adapters.navsat import STATUS_FIX, FixPolicy, fix_fields
+    from vlm_vpr_ros.localization.verification.status import StatusPolicy
+
+    policy = StatusPolicy(fix_max_sigma_m=0.001, fallback_status="fix",
+                          fallback_min_sigma_m=5000.0)
+    pipeline.tune(policy, None)
+    rt, col = make(pipeline, create_prior_provider("none", {}), min_period_s=0.0)
+    try:
+        rt.on_frame(frame_of(msg_of(image), 43_000_000_000))
+        out = col.wait(1)
+    finally:
+        rt.stop()
+        pipeline.tune(StatusPolicy(), None)
+    h = out.hypothesis
+    f = fix_fields(h, FixPolicy(status=policy))
+    assert f.status == STATUS_FIX and not f.precise and f.sigma_m >= 5000.0 - 1e-6
+    ok, text = outcome_summary(out, 0.0)
+    assert ok and "STATUS_FIX (fallback: " in text and f"sigma {f.sigma_m:.0f} m" in text
+    level, message, values = rt.stats.report()
+    assert level == "WARN" and message.startswith("no precise fix: STATUS_FIX (fallback")
+    assert values["status"] == "STATUS_FIX" and abs(values["last_sigma_m"] - f.sigma_m) < 1e-6
+
+
 class FakeClock:
     """A manual clock (seconds), like a node's clock under use_sim_time."""
 

@@ -16,8 +16,7 @@ from vlm_vpr_ros.descriptors import GlobalDescriptor
 from vlm_vpr_ros.errors import MapError
 from vlm_vpr_ros.localization.localizer import Localizer, LocalizerConfig
 from vlm_vpr_ros.localization.verification.stage import VerificationConfig, Verifier
-from vlm_vpr_ros.localization.verification.status import StatusPolicy, fix_status, \
-    prior_resolved
+from vlm_vpr_ros.localization.verification.status import StatusPolicy, stamp_status
 from vlm_vpr_ros.maps.reference_map import ReferenceMap, descriptor_for_map
 from vlm_vpr_ros.priors.base import PriorResult
 from vlm_vpr_ros.types import Hypothesis, LocalFeatures
@@ -39,15 +38,6 @@ class QueryDescription:
     timings_ms: dict[str, float] = field(default_factory=dict)
 
 
-def apply_status(hyp: Hypothesis, policy: StatusPolicy) -> Hypothesis:
-    """Stamp ``status`` / ``status_reason`` (and the ``prior_resolved`` flag) on ``hyp``."""
-    if prior_resolved(hyp, policy) and "prior_resolved" not in hyp.flags:
-        hyp.flags = tuple(hyp.flags) + ("prior_resolved",)
-    ok, why = fix_status(hyp, policy)
-    hyp.status, hyp.status_reason = ("fix" if ok else "no_fix"), why
-    return hyp
-
-
 def verify_and_stamp(hyp: Hypothesis, local: LocalFeatures | None, verifier: Verifier | None,
                      localizer: Localizer, policy: StatusPolicy) -> Hypothesis:
     """Verify ``hyp`` with the query's ``local`` features (when there is a verifier), then stamp
@@ -60,7 +50,7 @@ def verify_and_stamp(hyp: Hypothesis, local: LocalFeatures | None, verifier: Ver
     elif "unverified" not in hyp.flags:
         hyp.flags = tuple(hyp.flags) + ("unverified",)
         hyp.verification = hyp.verification or "unverified: verification off"
-    return apply_status(hyp, policy)
+    return stamp_status(hyp, policy)
 
 
 class LocalizationPipeline:

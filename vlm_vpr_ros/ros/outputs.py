@@ -44,8 +44,7 @@ def output_qos(durability: str) -> QoSProfile:
 
 
 def fix_policy(cfg: NodeConfig) -> FixPolicy:
-    return FixPolicy(cfg.fallback_status, cfg.fallback_min_sigma_m, cfg.altitude_m,
-                     cfg.altitude_sigma_m, cfg.status_policy())
+    return FixPolicy(cfg.altitude_m, cfg.altitude_sigma_m, cfg.status_policy())
 
 
 class Outputs:

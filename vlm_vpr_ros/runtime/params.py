@@ -26,11 +26,10 @@ from typing import Any, Mapping
 from vlm_vpr_ros.errors import ConfigError
 from vlm_vpr_ros.localization.localizer import FUSION_MODES, LocalizerConfig
 from vlm_vpr_ros.localization.verification.stage import VerificationConfig
-from vlm_vpr_ros.localization.verification.status import MAX_SIGMA_M, StatusPolicy
+from vlm_vpr_ros.localization.verification.status import FALLBACK_STATUS, MAX_SIGMA_M, StatusPolicy
 from vlm_vpr_ros.runtime.worker import MODES
 
 QOS_CHOICES = ("sensor_data", "best_effort", "reliable")
-FALLBACK_STATUS = ("no_fix", "fix")
 DURABILITY = ("volatile", "transient_local")
 POSE_FRAMES = ("utm", "local_enu", "none")
 POSE_ON = ("relocalize", "every_fix")
@@ -183,7 +182,8 @@ class NodeConfig:
 
     def status_policy(self) -> StatusPolicy:
         return StatusPolicy(self.fix_min_p_correct, self.fix_max_sigma_m,
-                            self.trust_prior_for_fix, self.trust_operator_prior)
+                            self.trust_prior_for_fix, self.trust_operator_prior,
+                            self.fallback_status, self.fallback_min_sigma_m)
 
     def localizer_config(self) -> LocalizerConfig:
         return LocalizerConfig(top_p=self.top_p, fusion=self.fusion,

@@ -91,7 +91,8 @@ def outcome_summary(outcome: Any, waited_s: float,
         prior = f"no prior ({pr.reason if pr else 'not asked'}): global retrieval"
     flag = f" FLAGGED [{'|'.join(h.flags)}]" if h.flagged else ""
     # the status and sigma of the published fix (docs/verification.md)
-    status = "STATUS_FIX" if h.status == "fix" else f"NO_FIX ({h.status_reason or 'unverified'})"
+    status = ((f"STATUS_FIX ({h.status_reason})" if h.status_reason else "STATUS_FIX")
+              if h.status == "fix" else f"NO_FIX ({h.status_reason or 'unverified'})")
     p = "" if math.isnan(h.p_correct) else f"p_correct {h.p_correct:.3f}, "
     took = outcome.finished - outcome.started
     what = "relocalized frame" if outcome.trigger == "relocalize" else "fix for frame"

@@ -140,6 +140,9 @@ class RuntimeStats:
             flags = f" [{last['flags']}]" if last["flagged"] else ""
             return "WARN", (f"no precise fix: STATUS_NO_FIX ({last['status_reason']}), "
                             f"sigma {last['sigma_m']:.0f} m, {what}{flags}"), values
+        if last["status_reason"]:  # published as a fix only by fallback_status: fix
+            return "WARN", (f"no precise fix: STATUS_FIX ({last['status_reason']}), "
+                            f"sigma {last['sigma_m']:.0f} m, {what}"), values
         if last["flagged"]:
             return "WARN", (f"flagged fix [{last['flags']}]: {what}, STATUS_FIX, "
                             f"sigma {last['sigma_m']:.0f} m"), values

@@ -7,6 +7,12 @@ removed far look-alikes from the evidence (``prior_resolved``) is a fix only whe
 trusted (``trust_prior_for_fix``; ``trust_operator_prior`` for priors that carry their own
 ``sigma_km``, e.g. an operator's hint through the ``fixed`` provider). docs/verification.md.
 
+Fallback: ``fallback_status="fix"`` publishes the answers failing the rule as ``fix`` too (for
+filters that weigh every measurement by its covariance), with σ at least
+``fallback_min_sigma_m``; :func:`stamp_status` decides it once per answer, so the NavSatFix,
+the relocalize answer, diagnostics and results all carry the same status and σ (the reason
+then starts with ``fallback:``).
+
 σ: the per-axis σ of an isotropic 2-D Gaussian that holds at least the answer's 68 % and 95 %
 radii, ``σ = max(r68 / 1.5096, r95 / 2.4477)`` (Rayleigh quantiles), always finite.
 """
@@ -22,6 +28,8 @@ from vlm_vpr_ros.types import Hypothesis
 
 #: the largest σ ever published (half the Earth's circumference)
 MAX_SIGMA_M = MAX_DISTANCE_KM * 1000.0
+FALLBACK_STATUS = ("no_fix", "fix")
+FALLBACK = "fallback: "  # status_reason of a fix published only by fallback_status="fix"
 #: radius / σ of an isotropic 2-D Gaussian holding 68 % and 95 % of the mass (Rayleigh)
 K68 = math.sqrt(-2.0 * math.log(0.32))
 K95 = math.sqrt(-2.0 * math.log(0.05))
@@ -33,12 +41,18 @@ class StatusPolicy:
     fix_max_sigma_m: float = 50.0
     trust_prior_for_fix: bool = False  # prior_resolved answers may be fixes (any prior)
     trust_operator_prior: bool = False  # ... when the prior carries its own sigma_km
+    fallback_status: str = "no_fix"  # "fix": answers failing the rule are published as fixes
+    fallback_min_sigma_m: float = 0.0  # ... with at least this σ (0: their own σ)
 
     def __post_init__(self) -> None:
         if not (0.0 < self.fix_min_p_correct <= 1.0):
             raise ConfigError("fix_min_p_correct must be in (0, 1]")
         if not (self.fix_max_sigma_m > 0 and math.isfinite(self.fix_max_sigma_m)):
             raise ConfigError("fix_max_sigma_m must be a positive finite number")
+        if self.fallback_status not in FALLBACK_STATUS:
+            raise ConfigError(f"fallback_status must be one of {', '.join(FALLBACK_STATUS)}")
+        if not (0.0 <= self.fallback_min_sigma_m <= MAX_SIGMA_M):
+            raise ConfigError(f"fallback_min_sigma_m must be in [0, {MAX_SIGMA_M:g}]")
 
     def trusts(self, hyp: Hypothesis) -> bool:
         """Whether the answer's prior may resolve a fix."""
@@ -89,3 +103,20 @@ def fix_status(hyp: Hypothesis, policy: StatusPolicy | None = None) -> tuple[boo
     if sigma > policy.fix_max_sigma_m:
         return False, f"sigma {sigma:.0f} m > {policy.fix_max_sigma_m:g} m"
     return True, ""
+
+
+def stamp_status(hyp: Hypothesis, policy: StatusPolicy) -> Hypothesis:
+    """Stamp ``status`` / ``status_reason`` (and the ``prior_resolved`` flag) on ``hyp`` under
+    ``policy``, the fallback included (module docstring): the one decision every output uses."""
+    if prior_resolved(hyp, policy) and "prior_resolved" not in hyp.flags:
+        hyp.flags = tuple(hyp.flags) + ("prior_resolved",)
+    ok, why = fix_status(hyp, policy)
+    if not ok and policy.fallback_status == "fix" and why != "no match":
+        least = policy.fallback_min_sigma_m
+        if least > 0:  # widen the radii so that the published σ is at least ``least``
+            r95 = hyp.radius95_m if math.isfinite(hyp.radius95_m) else 0.0
+            hyp.uncertainty_m = max(hyp.uncertainty_m, least * K68)
+            hyp.radius95_m = max(r95, least * K95)
+        ok, why = True, FALLBACK + why
+    hyp.status, hyp.status_reason = ("fix" if ok else "no_fix"), why
+    return hyp
