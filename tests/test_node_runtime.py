@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import concurrent.futures as cf
+import dataclasses
 import threading
 import time
 from types import SimpleNamespace
@@ -137,6 +138,38 @@ def test_fallback_fix_says_the_same_everywhere(pipeline, image):
     level, message, values = rt.stats.report()
     assert level == "WARN" and message.startswith("no precise fix: STATUS_FIX (fallback")
     assert values["status"] == "STATUS_FIX" and abs(values["last_sigma_m"] - f.sigma_m) < 1e-6
+    # the fix goes out as STATUS_FIX, but no pose: a fallback fix is no place to reset an EKF
+    sent = published_by_outputs(out, FixPolicy(status=policy))
+    assert [kind for kind, _ in sent] == ["fix"] and sent[0][1].status.status == STATUS_FIX
+    # the same answer stamped by a rule it passes (a precise fix) gets its pose
+    from vlm_vpr_ros.localization.verification.status import stamp_status
+
+    again = dataclasses.replace(h, status="", status_reason="", p_correct=0.99)
+    out.hypothesis = stamp_status(again, StatusPolicy(fix_max_sigma_m=1e7))
+    assert out.hypothesis.status == "fix"
+    sent = published_by_outputs(out, FixPolicy())
+    assert [kind for kind, _ in sent] == ["fix", "pose"]
+    assert sent[1][1].pose.covariance[0] == pytest.approx(sent[0][1].position_covariance[0])
+
+
+def published_by_outputs(out, policy) -> list[tuple[str, object]]:
+    """What ``Outputs.publish`` sends for ``out`` (pose_on every_fix, a local ENU frame), on
+    recording publishers instead of a ROS node."""
+    from vlm_vpr_ros.ros.outputs import Outputs
+    from vlm_vpr_ros.runtime.metric_frame import metric_frame
+    from vlm_vpr_ros.runtime.stats import Throttle
+
+    sent: list[tuple[str, object]] = []
+
+    def publisher(kind):
+        return SimpleNamespace(publish=lambda msg: sent.append((kind, msg)))
+
+    frame = metric_frame("local_enu", "map", datum_lat=TRUTH[0], datum_lon=TRUTH[1])
+    outputs = SimpleNamespace(fix=publisher("fix"), pose=publisher("pose"), frame=frame,
+                              _pose_log=Throttle(10.0))
+    cfg = SimpleNamespace(frame_id="gps", pose_on="every_fix", publish_debug=False)
+    Outputs.publish(outputs, out, cfg, policy)
+    return sent
 
 
 class FakeClock:

@@ -92,7 +92,7 @@ class Outputs:
             fields = fix_fields(hyp, policy)
             self.fix.publish(navsat_fix(hyp, stamp, frame_id, fields=fields))
             wanted = cfg.pose_on == "every_fix" or out.trigger == "relocalize"
-            if self.pose is not None and fields.status == STATUS_FIX and wanted:
+            if self.pose is not None and fields.precise and wanted:  # never a fallback fix
                 try:
                     pose = self.frame.pose(fields.latitude, fields.longitude, fields.altitude,
                                            fields.covariance)
