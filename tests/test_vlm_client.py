@@ -198,8 +198,11 @@ def test_min_interval_rate_limit(server):
     with _provider(server, min_interval_s=0.15, max_concurrency=3) as prov:
         futs = [prov.request(_query(color=(i, i, i))) for i in range(3)]
         assert all(f.result(timeout=10).ok for f in futs)
+    # times as the server received them: the client spaces its sends 0.15 s apart, and the
+    # receive times carry the machine's scheduling jitter (tens of ms on a loaded CI box);
+    # without the limit the three requests arrive within a few ms
     t = sorted(server.request_times)
-    assert min(b - a for a, b in zip(t, t[1:])) >= 0.14
+    assert min(b - a for a, b in zip(t, t[1:])) >= 0.08 and t[-1] - t[0] >= 0.25
 
 
 def test_cache_avoids_paying_twice_and_holds_no_secret(server, tmp_path, caplog):
