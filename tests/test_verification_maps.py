@@ -83,6 +83,41 @@ def test_featureless_frames_are_never_fixes(demo_pipe):
         assert h.verification == "verified" and h.p_correct < 0.95, name
 
 
+def test_unverified_answers_on_an_uncalibrated_map_claim_no_small_radius(demo_map):
+    """The demo map has no leave-one-out pairs for its posterior radii: with verification off,
+    a black frame gets the spread of its candidates as radii (thousands of km on these
+    world-wide references), not the posterior's 25 m floor, even as a fallback fix."""
+    from vlm_vpr_ros.localization.verification.status import StatusPolicy, horizontal_sigma
+
+    fallback = StatusPolicy(fallback_status="fix")
+    off = LocalizationPipeline.open(demo_map, verification={"top_k": 0}, status=fallback)
+    assert off.localizer.calibration_source.startswith("none")
+    for name, frame in featureless_frames().items():
+        h = off.localize_image(frame)
+        assert "unverified" in h.flags and h.status_reason.startswith("fallback"), name
+        top = h.candidates[:20]
+        far = sorted(haversine_km(h.lat, h.lon, c.lat, c.lon) * 1000 for c in top)
+        assert h.uncertainty_m >= far[int(np.ceil(0.68 * len(far))) - 1] - 1e-6, name
+        assert horizontal_sigma(h) > 1e5, (name, horizontal_sigma(h))  # > 100 km
+
+
+def test_fewer_verified_candidates_than_calibrated_claim_nothing(demo_map, demo_data, caplog):
+    """p_correct was calibrated verifying 20 candidates: verifying fewer leaves look-alikes out
+    (a higher inlier ratio for wrong answers), so p_correct is uncalibrated and nothing is a
+    fix; verifying more keeps the (conservative) calibration."""
+    from vlm_vpr_ros.evaluation.demo import make_query
+
+    r = next(csv.DictReader(open(demo_data / "coords.csv")))
+    q = make_query(load_image(demo_data / "images" / r["file"]), np.random.default_rng(0))
+    few = LocalizationPipeline.open(demo_map, verification={"top_k": 5})
+    assert not few.verifier.model.calibrated and "below the 20 candidates" in caplog.text
+    h = few.localize_image(q)
+    assert h.verification == "verified" and math.isnan(h.p_correct) and h.status == "no_fix"
+    assert h.status_reason == "uncalibrated verification"
+    more = LocalizationPipeline.open(demo_map, verification={"top_k": 30})
+    assert more.verifier.model.calibrated and more.localize_image(q).status == "fix"
+
+
 def test_a_mapped_place_is_verified_reranked_and_fixed(demo_pipe, demo_data):
     from vlm_vpr_ros.evaluation.demo import make_query
 

@@ -15,7 +15,8 @@ from vlm_vpr_ros.config import from_mapping
 from vlm_vpr_ros.descriptors import GlobalDescriptor
 from vlm_vpr_ros.errors import MapError
 from vlm_vpr_ros.localization.localizer import Localizer, LocalizerConfig
-from vlm_vpr_ros.localization.verification.stage import VerificationConfig, Verifier
+from vlm_vpr_ros.localization.verification.stage import (VerificationConfig, Verifier,
+                                                         widen_to_candidate_spread)
 from vlm_vpr_ros.localization.verification.status import StatusPolicy, stamp_status
 from vlm_vpr_ros.maps.reference_map import ReferenceMap, descriptor_for_map
 from vlm_vpr_ros.priors.base import PriorResult
@@ -42,14 +43,16 @@ def verify_and_stamp(hyp: Hypothesis, local: LocalFeatures | None, verifier: Ver
                      localizer: Localizer, policy: StatusPolicy) -> Hypothesis:
     """Verify ``hyp`` with the query's ``local`` features (when there is a verifier), then stamp
     its status under ``policy``."""
+    calibrated = not localizer.calibration_source.startswith("none")
     if verifier is not None and hyp.candidates:
         model = localizer.error_model_for(hyp.prior) if hyp.prior is not None else None
         verifier.verify(hyp, local, model, trust_prior=policy.trusts(hyp),
-                        level=policy.fix_min_p_correct,
-                        radii_calibrated=not localizer.calibration_source.startswith("none"))
+                        level=policy.fix_min_p_correct, radii_calibrated=calibrated)
     elif "unverified" not in hyp.flags:
         hyp.flags = tuple(hyp.flags) + ("unverified",)
         hyp.verification = hyp.verification or "unverified: verification off"
+    if not calibrated and "unverified" in hyp.flags:
+        widen_to_candidate_spread(hyp)  # e.g. a lens cap with verify_top_k 0: not 25 m
     return stamp_status(hyp, policy)
 
 

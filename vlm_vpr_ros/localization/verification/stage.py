@@ -145,10 +145,23 @@ class Verifier:
             log.warning("%s: the verification calibration was made with other local "
                         "features; p_correct is uncalibrated", self.map.path)
             doc = None
-        self.model = PCorrect.from_doc(doc)
+        self.model = PCorrect.from_doc(self._usable_calibration(doc))
         self.evidence = EvidenceConfig(
             place_radius_m=float((doc or {}).get("place_radius_m", 25.0)),
             competitor_floor=int((doc or {}).get("competitor_floor", 12)))
+
+    def _usable_calibration(self, doc: dict | None) -> dict | None:
+        """``doc``, or None when ``top_k`` is below the K it was calibrated with: fewer verified
+        candidates leave out look-alike competitors, so the inlier ratio rises and the bound
+        ``p_correct >= level`` on wrong answers no longer holds (more candidates only lower
+        the ratio: the bound stays conservative)."""
+        k_cal = int((doc or {}).get("top_k", 0))
+        if doc is not None and self.config.top_k < k_cal:
+            log.warning("%s: verify_top_k %d is below the %d candidates the map's p_correct was "
+                        "calibrated with: p_correct is uncalibrated (no STATUS_FIX)",
+                        self.map.path, self.config.top_k, k_cal)
+            return None
+        return doc
 
     def _images_root(self, root: Path | None) -> Path | None:
         from vlm_vpr_ros.maps.map_images import images_folder
@@ -292,3 +305,23 @@ class Verifier:
         hyp.flags = tuple(hyp.flags) + ("verified",)
         hyp.matches = [matches[i] for i in ev.order]
         hyp.timings_ms["verify_ms"] = (time.perf_counter() - t0) * 1e3
+
+
+def widen_to_candidate_spread(hyp: Hypothesis, k: int = 20) -> None:
+    """Radii of an unverified answer on a map whose posterior radii are not calibrated (no
+    leave-one-out pairs, e.g. the demo map): at least the spread of its top ``k`` candidates
+    around it. Nothing tells the answer from its look-alikes there, so its own radius (a 25 m
+    floor for a black frame) would claim a certainty nobody measured."""
+    top = list(hyp.candidates[:k])
+    if not top or not (math.isfinite(hyp.lat) and math.isfinite(hyp.lon)):
+        return
+    lat, lon, ids = [c.lat for c in top], [c.lon for c in top], [c.ref_id for c in top]
+    if hyp.ref_id in ids:
+        winner = ids.index(hyp.ref_id)
+    else:
+        lat, lon, winner = lat + [hyp.lat], lon + [hyp.lon], len(top)
+    s68, s95 = spread_radii(np.array(lat), np.array(lon), winner)
+    r68 = hyp.uncertainty_m if math.isfinite(hyp.uncertainty_m) else 0.0
+    r95 = hyp.radius95_m if math.isfinite(hyp.radius95_m) else r68
+    hyp.uncertainty_m = max(r68, s68)
+    hyp.radius95_m = max(r95, s95, hyp.uncertainty_m)
