@@ -118,7 +118,7 @@ def test_fallback_fix_says_the_same_everywhere(pipeline, image):
     least sigma: the relocalize answer and diagnostics say that status and that sigma too
     (and diagnostics WARN: it is not a precise fix)."""
     from msg_adapters.navsat import STATUS_FIX, FixPolicy, fix_fields
-    from vlm_vpr_ros.localization.verification.status import StatusPolicy
+    from vlm_vpr_ros.localization.verification.status import StatusPolicy, stamp_status
 
     policy = StatusPolicy(fix_max_sigma_m=0.001, fallback_status="fix",
                           fallback_min_sigma_m=5000.0)
@@ -134,19 +134,27 @@ def test_fallback_fix_says_the_same_everywhere(pipeline, image):
     f = fix_fields(h, FixPolicy(status=policy))
     assert f.status == STATUS_FIX and not f.precise and f.sigma_m >= 5000.0 - 1e-6
     ok, text = outcome_summary(out, 0.0)
-    assert ok and "STATUS_FIX (fallback: " in text and f"sigma {f.sigma_m:.0f} m" in text
+    # reported, but no success: a robot must not act on it as on a precise fix
+    assert not ok and "STATUS_FIX (fallback: " in text and f"sigma {f.sigma_m:.0f} m" in text
     level, message, values = rt.stats.report()
     assert level == "WARN" and message.startswith("no precise fix: STATUS_FIX (fallback")
     assert values["status"] == "STATUS_FIX" and abs(values["last_sigma_m"] - f.sigma_m) < 1e-6
     # the fix goes out as STATUS_FIX, but no pose: a fallback fix is no place to reset an EKF
     sent = published_by_outputs(out, FixPolicy(status=policy))
     assert [kind for kind, _ in sent] == ["fix"] and sent[0][1].status.status == STATUS_FIX
+    # under the default fallback (no_fix) it is NO_FIX: no pose, and no success either
+    out.hypothesis = stamp_status(dataclasses.replace(h, status="", status_reason=""),
+                                  StatusPolicy(fix_max_sigma_m=0.001))
+    ok, text = outcome_summary(out, 0.0)
+    assert not ok and "NO_FIX (sigma" in text
+    assert published_by_outputs(out, FixPolicy())[0][1].status.status != STATUS_FIX
+    assert [kind for kind, _ in published_by_outputs(out, FixPolicy())] == ["fix"]
     # the same answer stamped by a rule it passes (a precise fix) gets its pose
-    from vlm_vpr_ros.localization.verification.status import stamp_status
-
     again = dataclasses.replace(h, status="", status_reason="", p_correct=0.99)
     out.hypothesis = stamp_status(again, StatusPolicy(fix_max_sigma_m=1e7))
     assert out.hypothesis.status == "fix"
+    ok, text = outcome_summary(out, 0.0)
+    assert ok and "STATUS_FIX, sigma" in text  # the relocalize service's success
     sent = published_by_outputs(out, FixPolicy())
     assert [kind for kind, _ in sent] == ["fix", "pose"]
     assert sent[1][1].pose.covariance[0] == pytest.approx(sent[0][1].position_covariance[0])

@@ -143,21 +143,22 @@ def test_runtime_threshold_changes_the_next_fix_and_structural_is_refused(stack)
     client, tick, node = stack["client"], stack["tick"], stack["node"]
     poses = stack["pose"]
 
-    def relocalize_no_prior():
+    def relocalize_no_prior(success: bool):
         n_fix, n_pose = len(client.fixes), len(poses)
         [fut] = _call_all(client, "relocalize_no_prior", 1, tick)
-        assert fut.done() and fut.result().success, node.log()
+        assert fut.done() and fut.result().success is success, node.log()
         assert client.wait_for(lambda: len(client.fixes) > n_fix, 10.0), node.log()
         time.sleep(0.5)  # a pose would follow its fix at once
-        return client.fixes[-1][0], len(poses) - n_pose
+        return client.fixes[-1][0], len(poses) - n_pose, fut.result().message
 
     ok = client.set_parameters(NODE, {"fix_max_sigma_m": 0.001})
     assert ok[0].successful, ok[0].reason
-    fix, new_poses = relocalize_no_prior()
-    assert fix.status.status == NO_FIX and new_poses == 0  # a no-fix result has no pose
+    # a no-fix result: no pose, and the service says so (success false, the answer in words)
+    fix, new_poses, message = relocalize_no_prior(False)
+    assert fix.status.status == NO_FIX and new_poses == 0 and "NO_FIX (sigma" in message
     assert client.set_parameters(NODE, {"fix_max_sigma_m": 1.0e6})[0].successful
-    fix, new_poses = relocalize_no_prior()
-    assert fix.status.status == FIX and new_poses == 1
+    fix, new_poses, message = relocalize_no_prior(True)
+    assert fix.status.status == FIX and new_poses == 1 and "STATUS_FIX" in message
     assert "parameters changed at runtime (next query): fix_max_sigma_m" in node.log()
 
     refused = client.set_parameters(NODE, {"map_dir": "/elsewhere", "prior.model": "x",

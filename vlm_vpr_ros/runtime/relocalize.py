@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from vlm_vpr_ros.errors import ConfigError
-from vlm_vpr_ros.localization.verification.status import horizontal_sigma
+from vlm_vpr_ros.localization.verification.status import FALLBACK, horizontal_sigma
 
 FRAME_POLICIES = ("latest", "next")
 
@@ -75,7 +75,9 @@ class RelocalizeTicket:
 def outcome_summary(outcome: Any, waited_s: float,
                     fix_topic: str = "fix") -> tuple[bool, str]:
     """(success, human-readable sentence) answering a relocalize request (``outcome``: the
-    worker's QueryOutcome, None when none came in time)."""
+    worker's QueryOutcome, None when none came in time). ``success`` means the robot may act
+    on the answer: a STATUS_FIX that passed the status rule (the answers that also go out on
+    ``pose``); a NO_FIX or a ``fallback_status: fix`` answer is reported, with success false."""
     if outcome is None:
         return False, (f"relocalization scheduled, no result within {waited_s:.1f} s (waiting "
                        f"for a frame or for the prior); the fix will be published on "
@@ -96,7 +98,8 @@ def outcome_summary(outcome: Any, waited_s: float,
     p = "" if math.isnan(h.p_correct) else f"p_correct {h.p_correct:.3f}, "
     took = outcome.finished - outcome.started
     what = "relocalized frame" if outcome.trigger == "relocalize" else "fix for frame"
-    return True, (f"{what} {frame.key}: lat {h.lat:.6f}, lon {h.lon:.6f}, {status}, "
+    precise = h.status == "fix" and not h.status_reason.startswith(FALLBACK)
+    return precise, (f"{what} {frame.key}: lat {h.lat:.6f}, lon {h.lon:.6f}, {status}, "
                   f"sigma {horizontal_sigma(h):.0f} m, {p}reference {h.ref_id}, "
                   f"submap {h.submap}, {prior}, {len(h.candidates)} candidates, "
                   f"{took:.2f} s{flag}")
