@@ -141,5 +141,11 @@ def test_redaction_rules_for_prose_and_counts():
     assert redact("OPENAI_API_KEY=sk9x8y7z access_token: abc {api_key: q}") == \
         "OPENAI_API_KEY=*** access_token: *** {api_key: ***}"
     assert redact("api-key: 0123abcd") == "api-key: ***"
+    # a name is secret when it ends in a secret word: advice naming an option stays readable
+    assert redact("change the prior option token_param=max_completion_tokens") == \
+        "change the prior option token_param=max_completion_tokens"
+    assert redact("secret_garden: 51.5, tokens: 12") == "secret_garden: 51.5, tokens: 12"
+    assert redact("client_secret=a1 SECRET_KEY: b2 proxy_password=c3 auth_token: d4") == \
+        "client_secret=*** SECRET_KEY: *** proxy_password=*** auth_token: ***"
     out = redact_obj({"raw": "Authorization: Bearer sk-zzzzzzzzzzzz", "n": [1, "token=abc"]})
     assert out == {"raw": "Authorization: ***", "n": [1, "token=***"]}

@@ -29,10 +29,11 @@ _URL_USERINFO = re.compile(r"(?i)\b([a-z][a-z0-9+.-]*://)[^/@\s'\"]+@")
 _HEADER = re.compile(r"(?i)\b(authorization|proxy-authorization|x-api-key|api-key)"
                      r"(['\"]?\s*[:=]\s*['\"]?)(?:bearer\s+|basic\s+)?[^\s'\",}]+")
 _BEARER = re.compile(r"(?i)\b(bearer\s+)[A-Za-z0-9._~+/=-]{6,}")
-# a ``name: value`` pair whose name says secret; not a ``$NAME`` / ``${NAME}`` reference to a
+# a ``name: value`` pair whose name ends in a secret word (``client_secret``, ``secret_key``;
+# not ``token_param`` or ``max_tokens``); not a ``$NAME`` / ``${NAME}`` reference to a
 # variable, whose ":" starts ordinary prose ("no key in $OPENAI_API_KEY: sending ...")
 _NAMED = re.compile(r"(?i)(?<![$\w])(?<!\$\{)"
-                    r"([a-z_]*(?:api_?key|secret|token(?!s)|password|passwd)[a-z_]*)"
+                    r"([a-z_]*(?:api_?key|secret|token|password|passwd)(?:_?key)?)(?![a-z_])"
                     r"(['\"]?\s*[:=]\s*['\"]?)(?!\$|\{)([^\s'\",}&]+)")
 _SHAPED = re.compile(r"\b(?:sk-[A-Za-z0-9_-]{8,}|AIza[0-9A-Za-z_-]{20,}|gh[pousr]_[A-Za-z0-9]{20,}"
                      r"|hf_[A-Za-z0-9]{20,}|xox[abpr]-[A-Za-z0-9-]{10,})")
