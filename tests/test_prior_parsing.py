@@ -156,6 +156,7 @@ def test_pathological_inputs_are_handled():
     ('Location: {"type": "Feature", "geometry": {"type": "Point", "coordinates": '
      '[151.2153, -33.8568]}, "properties": {"city": "Sydney"}}', -33.8568, 151.2153),
     ('{"coordinates": [48.8566, 2.3522]}', 48.8566, 2.3522),  # no GeoJSON type: lat, lon
+    ('{"coordinates": [-122.4194, 37.7749]}', 37.7749, -122.4194),  # ... unless it can't be
 ])
 def test_geojson_points_are_lon_lat(text, lat, lon):
     _close(parse_answer(text, "robust"), lat, lon)
@@ -203,3 +204,16 @@ def test_structured_answers():
     assert parse_structured("").reason == "empty"
     assert parse_structured('{"latitude": 1, "longitude": 2, "uncertainty_km": -4}'
                             ).uncertainty_km is None
+
+
+def test_a_registered_secret_never_changes_the_coordinates_read():
+    """Answers are parsed as received and stored redacted: a short registered secret (a proxy
+    user name of digits) inside a coordinate must not turn 41.93517 into 41.***."""
+    from vlm_vpr_ros.priors.vlm import result_from_text
+    from vlm_vpr_ros.redact import register_secret
+
+    register_secret("93517")
+    r = result_from_text('{"latitude": 41.93517, "longitude": 12.4964, "city": "x93517"}',
+                         "vlm")
+    assert r.ok and (r.prior.lat, r.prior.lon) == (41.93517, 12.4964)
+    assert "93517" not in r.raw_text and "93517" not in str(r.extra)

@@ -183,6 +183,11 @@ def _find_keys(obj: Any, depth: int = 0) -> tuple[Any, Any, dict[str, str]] | No
     for key in ("coordinates", "coords", "location", "position", "gps"):
         v = low.get(key)
         if isinstance(v, (list, tuple)) and len(v) == 2:
+            # a bare pair is read as the prompt asks (lat, lon) unless the first value cannot
+            # be a latitude and the second can: then it is GeoJSON's order without the type
+            first, second = _lenient_scalar(v[0], "lon"), _lenient_scalar(v[1], "lat")
+            if first is not None and second is not None and abs(first) > 90 >= abs(second):
+                return v[1], v[0], info
             return v[0], v[1], info
     for v in low.values():
         hit = _find_keys(v, depth + 1)

@@ -40,7 +40,7 @@ from vlm_vpr_ros.priors.openai_client import CallHandle, ChatClient, ChatReply
 from vlm_vpr_ros.priors.parsing import PARSER_MODES, parse_answer, parse_structured
 from vlm_vpr_ros.priors.prompts import build_messages, get_prompt, response_format
 from vlm_vpr_ros.priors.request import error_message, rejection, request_options
-from vlm_vpr_ros.redact import redact
+from vlm_vpr_ros.redact import redact, redact_obj
 
 log = logging.getLogger(__name__)
 
@@ -53,17 +53,19 @@ def result_from_text(raw: str | None, source: str, parser: str = "robust",
     """Parse a raw answer into a PriorResult: ok, a failure with the parser's reason, or
     ``suspicious_<why>`` for a position that must not be used as a prior. ``parse_path``
     ``structured`` reads a structured-output answer, falling back to the text parser."""
-    raw = None if raw is None else redact(raw)
-    parsed = parse_structured(raw) if parse_path == "structured" else None
+    # parsed as received, kept redacted: masking a short registered secret (a proxy user
+    # name "7128") inside the answer would change "40.7128" before it is read
+    text, raw = raw, (None if raw is None else redact(raw))
+    parsed = parse_structured(text) if parse_path == "structured" else None
     if parsed is not None and parsed.reason == "no_coordinates":  # the schema was ignored
         parsed, parse_path = None, "text_fallback"
     if parsed is None:
-        parsed = parse_answer(raw, parser)
+        parsed = parse_answer(text, parser)
     extra = {**(extra or {}), "parser": parser, "parse_path": parse_path}
     if not parsed.ok:
         return PriorResult(None, source, parsed.reason, latency_s, raw, extra)
     assert parsed.lat is not None and parsed.lon is not None
-    extra.update(parse_method=parsed.method, **parsed.info)
+    extra.update(parse_method=parsed.method, **redact_obj(parsed.info))
     if parsed.uncertainty_km is not None:
         extra["model_uncertainty_km"] = parsed.uncertainty_km
     if parsed.suspicious:  # read, but not a prior: flagged with the position for audit
