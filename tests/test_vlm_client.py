@@ -136,35 +136,61 @@ def test_hard_timeout(server):
     assert res.latency_s < 5.0  # bounded by the per-attempt timeout, not by the server
 
 
-def test_hard_timeout_holds_against_a_trickling_server():
-    """A server that keeps sending a byte every 50 ms defeats a plain socket timeout."""
-    lsock = socket.create_server(("127.0.0.1", 0))
-    stop = threading.Event()
+class TricklingServer:
+    """Answers 200 with a long body and then sends a byte every 50 ms: defeats a plain socket
+    timeout."""
 
-    def trickle():
-        conn, _ = lsock.accept()
+    def __enter__(self):
+        self.lsock = socket.create_server(("127.0.0.1", 0))
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._serve, daemon=True)
+        self.thread.start()
+        self.base_url = f"http://127.0.0.1:{self.lsock.getsockname()[1]}/v1"
+        return self
+
+    def _serve(self):
+        conn, _ = self.lsock.accept()
         with conn:
             conn.recv(65536)
             conn.sendall(b"HTTP/1.1 200 OK\r\nContent-Length: 100000\r\n\r\n")
-            while not stop.wait(0.05):
+            while not self.stop.wait(0.05):
                 try:
                     conn.sendall(b" ")
                 except OSError:
                     return
 
-    thread = threading.Thread(target=trickle, daemon=True)
-    thread.start()
-    port = lsock.getsockname()[1]
-    try:
-        prov = create_prior_provider("openai", {"base_url": f"http://127.0.0.1:{port}/v1",
-                                                "timeout_s": 0.4, "max_retries": 0})
+    def __exit__(self, *exc):
+        self.stop.set()
+        self.thread.join(timeout=5)
+        self.lsock.close()
+
+
+def test_hard_timeout_holds_against_a_trickling_server():
+    with TricklingServer() as srv:
+        prov = create_prior_provider("openai", {"base_url": srv.base_url, "timeout_s": 0.4,
+                                                "max_retries": 0})
         with prov:
             res = prov.get(_query(), timeout_s=20)
-        assert res.reason == "timeout" and res.latency_s < 5.0
-    finally:
-        stop.set()
-        thread.join(timeout=5)
-        lsock.close()
+    assert res.reason == "timeout" and res.latency_s < 5.0
+
+
+def test_hard_timeout_holds_when_the_connection_opens_after_the_deadline(monkeypatch):
+    """A slow connect (DNS, addresses tried in turn) outlives the deadline while there is no
+    socket for the watchdog to shut: the attempt must still end at its deadline, not send its
+    request to a server that then trickles for ever."""
+    real = socket.create_connection
+
+    def slow_connect(*args, **kwargs):
+        time.sleep(1.0)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(socket, "create_connection", slow_connect)
+    with TricklingServer() as srv:
+        prov = create_prior_provider("openai", {"base_url": srv.base_url, "timeout_s": 0.4,
+                                                "max_retries": 0})
+        with prov:
+            res = prov.get(_query(), timeout_s=10)
+    assert res.reason == "timeout" and res.latency_s < 5.0, (res.reason, res.latency_s)
 
 
 def test_request_returns_at_once_and_cancel_aborts(server):

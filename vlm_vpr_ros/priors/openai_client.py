@@ -245,6 +245,7 @@ class ChatClient:
             for c in current:
                 _shutdown(c)
 
+        deadline = time.monotonic() + self.timeout_s
         watchdog = threading.Timer(self.timeout_s, _expire)  # one deadline for the attempt
         watchdog.daemon = True
         watchdog.start()
@@ -259,7 +260,13 @@ class ChatClient:
                     raise TimeoutError("deadline passed")
                 try:
                     if conn.sock is None:
+                        # the watchdog cannot shut a socket that does not exist yet (a slow
+                        # DNS answer, addresses tried in turn): connect within what is left,
+                        # and give up if the deadline passed meanwhile
+                        conn.timeout = max(0.001, deadline - time.monotonic())
                         conn.connect()
+                        if fired.is_set():
+                            raise TimeoutError("deadline passed while connecting")
                     if handle.aborted.is_set():  # aborted before the socket existed
                         return ChatReply(None, "cancelled"), None
                     conn.request("POST", target, body=data, headers=headers)
