@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import csv
 import json
+import logging
 import math
 import shutil
 
@@ -182,7 +183,8 @@ def test_damaged_or_foreign_feature_store(demo_map, tmp_path, caplog):
         Verifier(ReferenceMap.load(m3), VerificationConfig(required=True))
 
 
-def test_map_without_features_verifies_from_images_but_claims_nothing(demo_data, tmp_path):
+def test_map_without_features_verifies_from_images_but_claims_nothing(demo_data, tmp_path,
+                                                                     caplog):
     from vlm_vpr_ros.maps.build_images import build_map
 
     rows, coords = first_rows(demo_data, 14, tmp_path / "c.csv")
@@ -202,6 +204,14 @@ def test_map_without_features_verifies_from_images_but_claims_nothing(demo_data,
     assert h.verification == "verified" and h.inliers > 50 and h.ref_id == rows[3]["file"]
     assert math.isnan(h.p_correct) and h.status == "no_fix"
     assert h.status_reason == "uncalibrated verification"
+    # a runtime verify_top_k that cannot be applied (required, nothing to verify against) is
+    # refused once with a log line; the queries go on with the verifier they had
+    off = LocalizationPipeline.open(m, verification={"top_k": 0, "required": True})
+    with caplog.at_level(logging.ERROR):
+        off.tune(None, 20)
+        off.tune(None, 20)
+    assert off.verifier.config.top_k == 0 and off.localize_image(q).status == "no_fix"
+    assert caplog.text.count("verify_top_k 20 cannot be applied, keeping 0") == 1
 
 
 def test_map_add_remove_keep_features_row_aligned(demo_half_map, demo_data, tmp_path):

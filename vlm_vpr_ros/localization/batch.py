@@ -18,6 +18,7 @@ from vlm_vpr_ros.errors import ImageDecodeError, VlmVprError
 from vlm_vpr_ros.files.images import load_image
 from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
 from vlm_vpr_ros.priors.base import PriorProvider, PriorQuery, PriorResult, wait_prior
+from vlm_vpr_ros.redact import redact
 from vlm_vpr_ros.types import Hypothesis
 
 log = logging.getLogger(__name__)
@@ -63,7 +64,7 @@ def localize_files(pipeline: LocalizationPipeline, provider: PriorProvider,
             data = path.read_bytes()
             image = load_image(path)
         except (OSError, ImageDecodeError) as exc:
-            return None, None, str(exc)
+            return None, None, redact(exc)
         return image, provider.request(PriorQuery(image=image, encoded=data, key=f)), ""
 
     for f, (image, fut, err) in started_ahead(files, start, window):
@@ -81,12 +82,12 @@ def localize_files(pipeline: LocalizationPipeline, provider: PriorProvider,
                 on_result(f, image, hyp)
         except VlmVprError as exc:
             log.warning("query %s failed: %s", f, exc)
-            yield {"file": f, "flags": "error", "prior_reason": str(exc)}
+            yield {"file": f, "flags": "error", "prior_reason": redact(exc)}
             continue
         except Exception as exc:  # noqa: BLE001 - one failing query must not lose the run
             log.warning("query %s failed: internal error %s: %s", f, type(exc).__name__, exc)
             yield {"file": f, "flags": "error",
-                   "prior_reason": f"internal error: {type(exc).__name__}: {exc}"}
+                   "prior_reason": redact(f"internal error: {type(exc).__name__}: {exc}")}
             continue
         yield result_row(f, hyp, prior, t_desc)
 

@@ -13,7 +13,7 @@ import numpy as np
 
 from vlm_vpr_ros.config import from_mapping
 from vlm_vpr_ros.descriptors import GlobalDescriptor
-from vlm_vpr_ros.errors import MapError
+from vlm_vpr_ros.errors import MapError, VlmVprError
 from vlm_vpr_ros.localization.localizer import Localizer, LocalizerConfig
 from vlm_vpr_ros.localization.verification.stage import (VerificationConfig, Verifier,
                                                          widen_to_candidate_spread)
@@ -71,6 +71,7 @@ class LocalizationPipeline:
         self.verifier = verifier
         self.status_policy = status or StatusPolicy()
         self.verify = False  # sha256 pass when the map is (re)read: set by open()
+        self._refused_top_k: int | None = None  # a verify_top_k that could not be applied
 
     @classmethod
     def open(cls, map_dir: str | os.PathLike[str], descriptor: str | None = None,
@@ -125,8 +126,14 @@ class LocalizationPipeline:
         if status is not None:
             self.status_policy = status
         v = self.verifier
-        if verify_top_k is not None and v is not None and v.config.top_k != verify_top_k:
-            self.verifier = Verifier(self.map, replace(v.config, top_k=int(verify_top_k)))
+        if verify_top_k is not None and v is not None and v.config.top_k != verify_top_k \
+                and verify_top_k != self._refused_top_k:
+            try:
+                self.verifier = Verifier(self.map, replace(v.config, top_k=int(verify_top_k)))
+            except VlmVprError as exc:  # e.g. verification_required on a map without features
+                self._refused_top_k = verify_top_k  # said once, not at every query
+                log.error("verify_top_k %d cannot be applied, keeping %d: %s", verify_top_k,
+                          v.config.top_k, exc)
 
     def describe(self, image: np.ndarray) -> np.ndarray:
         return self.descriptor.describe_one(image)

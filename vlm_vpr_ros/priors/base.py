@@ -16,6 +16,8 @@ from typing import Any
 
 import numpy as np
 
+from vlm_vpr_ros.redact import redact
+
 
 @dataclass(frozen=True)
 class Prior:
@@ -48,6 +50,12 @@ class PriorResult:
     latency_s: float = 0.0
     raw_text: str | None = None  # the VLM's raw answer, for audit (never contains secrets)
     extra: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        # reasons go to results CSVs, /diagnostics and relocalize answers, and may hold the
+        # text of an exception (a URL with userinfo, a header echoed by an endpoint)
+        if self.reason:
+            object.__setattr__(self, "reason", redact(self.reason))
 
     @property
     def ok(self) -> bool:

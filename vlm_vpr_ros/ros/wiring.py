@@ -25,6 +25,7 @@ from msg_adapters.image import encoded_bytes, message_to_rgb, stamp_ns
 from vlm_vpr_ros.errors import ConfigError, MapError, VlmVprError
 from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
 from vlm_vpr_ros.priors import create_prior_provider
+from vlm_vpr_ros.redact import redact
 from vlm_vpr_ros.ros.outputs import Outputs, fix_policy
 from vlm_vpr_ros.ros.parameters import _Parameters
 from vlm_vpr_ros.runtime.params import NodeConfig
@@ -228,8 +229,13 @@ class _Wiring(_Parameters):
             response.success, response.message = True, (
                 f"map {self.cfg.map_dir} reloaded: {self.pipeline.map.n_references} "
                 "references (used from the next activate)")
-        except VlmVprError as exc:
-            response.success, response.message = False, f"map reload failed: {exc}"
+        except (VlmVprError, OSError) as exc:
+            response.success, response.message = False, redact(f"map reload failed: {exc}")
+        except Exception as exc:  # noqa: BLE001 - a service call must not stop the node
+            self.get_logger().error(redact(f"map reload failed: {type(exc).__name__}: {exc}"))
+            response.success = False
+            response.message = redact(f"map reload failed (internal error {type(exc).__name__}:"
+                                      f" {exc})")
         return response
 
     # -- output -----

@@ -38,6 +38,7 @@ from vlm_vpr_ros.priors.base import PriorProvider, PriorQuery, PriorResult
 from vlm_vpr_ros.runtime import debug_view
 from vlm_vpr_ros.runtime.relocalize import (RelocalizeKind, RelocalizeTicket,
                                             outcome_summary)
+from vlm_vpr_ros.redact import redact
 from vlm_vpr_ros.runtime.stats import RuntimeStats, Throttle
 from vlm_vpr_ros.types import Hypothesis
 
@@ -195,10 +196,15 @@ class QueryRuntime:
             t0 = time.monotonic()
             try:
                 new = old.reloaded()
-            except VlmVprError as exc:
+            except (VlmVprError, OSError) as exc:
                 self.stats.count("map_reload_failures")
                 log.error("map reload failed, keeping the current map: %s", exc)
-                return False, f"map reload failed, the current map stays in use: {exc}"
+                return False, redact(f"map reload failed, the current map stays in use: {exc}")
+            except Exception as exc:  # noqa: BLE001 - a service call must not stop the node
+                self.stats.count("map_reload_failures")
+                log.exception("map reload failed, keeping the current map")
+                return False, redact(f"map reload failed (internal error {type(exc).__name__}:"
+                                     f" {exc}), the current map stays in use")
             with self._cond:
                 self.pipeline = new
             self.stats.count("map_reloads")
@@ -326,6 +332,7 @@ class QueryRuntime:
                 for ticket in tickets:
                     ticket.finish(None)
                 return
+            outcome.error = redact(outcome.error)  # logged, in diagnostics and answers
             self.stats.record(outcome.hypothesis, outcome.error, outcome.timings_ms)
             try:
                 self._on_outcome(outcome)
