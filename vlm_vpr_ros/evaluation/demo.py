@@ -23,6 +23,7 @@ demo is deterministic: the same numbers on every run and machine.
 
 from __future__ import annotations
 
+import csv
 import logging
 import time
 from dataclasses import dataclass, field
@@ -32,6 +33,7 @@ import cv2
 import numpy as np
 
 from vlm_vpr_ros.files.images import load_image
+from vlm_vpr_ros.evaluation.lookalike import LOOKALIKE_KM
 from vlm_vpr_ros.geodesy import THRESHOLDS_KM
 from vlm_vpr_ros.localization.verification.status import StatusPolicy
 
@@ -46,11 +48,21 @@ VPR, PRIOR, PAPER, PAPER_NO_RR = ("VPR only (no prior)", "prior only (OSV-5M mod
                                   "paper: country submap, no re-rank")
 PAPER_NO_SUB, FUSED = "paper: re-rank, no submap", "prior+VPR (default fusion)"
 TRUSTED = "prior+VPR, trust_prior_for_fix"
+
+
+def _shipped_places() -> tuple[int, int]:
+    """(images, countries) of the shipped demo data, from its coords.csv."""
+    with open(DEMO_DATA / "coords.csv", newline="", encoding="utf-8") as f:
+        rows = list(csv.DictReader(f))
+    return len(rows), len({r["country"] for r in rows})
+
+
+_N_IMAGES, _N_COUNTRIES = _shipped_places()
 TITLES = {
-    "map": "Demo: 71 OSV-5M street images (48 countries); queries are altered copies of map "
-           "images",
+    "map": f"Demo: {_N_IMAGES} OSV-5M street images ({_N_COUNTRIES} countries); queries are "
+           "altered copies of map images",
     "lookalike": "Look-alike step: the same queries on a map where every place has a "
-                 "look-alike 5000 km away (built from the shipped images)",
+                 f"look-alike {LOOKALIKE_KM:g} km away (built from the shipped images)",
     "bag": "Demo bag evaluated offline (vlm-vpr evaluate-bag)",
     "fixes": "Verified fixes: the default pipeline's answers published as STATUS_FIX",  # printed
 }
