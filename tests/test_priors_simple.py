@@ -37,6 +37,26 @@ def test_recorded_lookup_by_name_and_basename(tmp_path):
     assert p.get(PriorQuery()).reason == "no_key"
 
 
+def test_recorded_names_in_two_folders_are_ambiguous_and_zero_zero_is_no_prior(tmp_path):
+    """Two recorded rows share a file name in different folders: a query known only by that
+    name gets no prior (before: the last row, silently); the exact key still finds its row.
+    (0, 0) is a placeholder row, as the VLM's null-island answers are flagged."""
+    csv = tmp_path / "p.csv"
+    csv.write_text("file,lat,lon\nday/a.jpg,10.5,-20.25\nnight/a.jpg,-33.9,151.2\n"
+                   "z.jpg,0,0\n")
+    p = create_prior_provider("recorded", {"path": str(csv)})
+    assert p.get(PriorQuery(key="a.jpg")).reason == "ambiguous_key"
+    assert p.get(PriorQuery(key="elsewhere/a.jpg")).reason == "ambiguous_key"
+    assert p.get(PriorQuery(key="night/a.jpg")).prior.lat == -33.9
+    assert p.get(PriorQuery(key="z.jpg")).reason == "not_recorded"
+    answers = tmp_path / "answers.csv"
+    answers.write_text('filename,response\nday/a.jpg,"latitude 10.5, longitude -20.25"\n'
+                       'night/a.jpg,"latitude -33.9, longitude 151.2"\n')
+    a = create_prior_provider("answers", {"path": str(answers)})
+    assert a.get(PriorQuery(key="a.jpg")).reason == "ambiguous_key"
+    assert a.get(PriorQuery(key="day/a.jpg")).prior.lat == 10.5
+
+
 def test_recorded_bad_files(tmp_path):
     with pytest.raises(DataError, match="not found"):
         create_prior_provider("recorded", {"path": str(tmp_path / "missing.csv")})

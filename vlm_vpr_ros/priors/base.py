@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import abc
 import concurrent.futures as cf
+import os
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -108,3 +109,25 @@ def wait_prior(fut: "cf.Future[PriorResult]", source: str,
     except cf.TimeoutError:
         fut.cancel()
         return PriorResult.failure(source, "timeout", latency_s=timeout_s or 0.0)
+
+
+class KeyedTable:
+    """Recorded values looked up by a query's key: the exact key, else its file name alone
+    ('images/a.jpg' and 'a.jpg' both work) when exactly one recorded key has that name; a name
+    shared by several recorded keys is ambiguous (reason ``ambiguous_key``), never one of them
+    picked silently."""
+
+    def __init__(self, table: dict[str, Any]) -> None:
+        self.table = table
+        self._by_name: dict[str, list[str]] = {}
+        for k in table:
+            self._by_name.setdefault(os.path.basename(k), []).append(k)
+
+    def find(self, key: str) -> tuple[Any, str]:
+        """(value, "") or (None, reason: not_recorded / ambiguous_key)."""
+        if key in self.table:
+            return self.table[key], ""
+        keys = self._by_name.get(os.path.basename(key), [])
+        if len(keys) > 1:
+            return None, "ambiguous_key"
+        return (self.table[keys[0]], "") if keys else (None, "not_recorded")

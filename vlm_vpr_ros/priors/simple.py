@@ -7,7 +7,7 @@ import math
 import os
 
 from vlm_vpr_ros.errors import PriorError
-from vlm_vpr_ros.priors.base import Prior, PriorProvider, PriorQuery, PriorResult
+from vlm_vpr_ros.priors.base import KeyedTable, Prior, PriorProvider, PriorQuery, PriorResult
 
 log = logging.getLogger(__name__)
 
@@ -47,8 +47,9 @@ class FixedPrior(PriorProvider):
 
 
 def read_prior_csv(path: str | os.PathLike[str]) -> dict[str, tuple[float, float]]:
-    """Read a ``file, lat, lon`` CSV into {file: (lat, lon)}; blank/invalid rows are skipped
-    (counted in a warning); a file repeated with other coordinates is a DataError."""
+    """Read a ``file, lat, lon`` CSV into {file: (lat, lon)}; blank/invalid rows and (0, 0)
+    placeholders are skipped (counted in a warning); a file repeated with other coordinates is
+    a DataError."""
     from vlm_vpr_ros.files.csvio import read_rows, strict_float, unique_rows
 
     items = []
@@ -58,12 +59,13 @@ def read_prior_csv(path: str | os.PathLike[str]) -> dict[str, tuple[float, float
         if lat is None or lon is None:
             bad += 1
             continue
-        if valid_latlon(lat, lon):
+        if valid_latlon(lat, lon) and (lat, lon) != (0.0, 0.0):  # (0, 0): a placeholder
             items.append((n, row["file"], (lat, lon)))
         else:
             bad += 1
     if bad:
-        log.warning("%s: %d row(s) without a valid lat/lon are treated as 'no prior'", path, bad)
+        log.warning("%s: %d row(s) without a valid lat/lon (or at 0, 0) are treated as 'no "
+                    "prior'", path, bad)
     return unique_rows(items, path, "file")
 
 
@@ -75,13 +77,12 @@ class RecordedPrior(PriorProvider):
     def __init__(self, path: str) -> None:
         self.path = path
         self.table = read_prior_csv(path)
-        # also allow lookup by basename, so 'images/a.jpg' and 'a.jpg' both work
-        self._by_base = {os.path.basename(k): v for k, v in self.table.items()}
+        self._lookup = KeyedTable(self.table)
 
     def _compute(self, query: PriorQuery) -> PriorResult:
         if not query.key:
             return PriorResult.failure(self.name, "no_key")
-        hit = self.table.get(query.key) or self._by_base.get(os.path.basename(query.key))
+        hit, why = self._lookup.find(query.key)
         if hit is None:
-            return PriorResult.failure(self.name, "not_recorded")
+            return PriorResult.failure(self.name, why)
         return PriorResult(Prior(hit[0], hit[1], self.name), self.name)

@@ -33,7 +33,7 @@ from vlm_vpr_ros.config import choose
 from vlm_vpr_ros.errors import ConfigError, DataError, ImageDecodeError
 from vlm_vpr_ros.files.images import check_rgb, decode_image_bytes, encode_jpeg
 from vlm_vpr_ros.priors import register_prior_provider
-from vlm_vpr_ros.priors.base import Prior, PriorProvider, PriorQuery, PriorResult
+from vlm_vpr_ros.priors.base import KeyedTable, Prior, PriorProvider, PriorQuery, PriorResult
 from vlm_vpr_ros.priors.cache import AnswerCache, cache_key, image_digest
 from vlm_vpr_ros.priors.keys import read_api_key
 from vlm_vpr_ros.priors.openai_client import CallHandle, ChatClient, ChatReply
@@ -357,17 +357,15 @@ class AnswersPrior(PriorProvider):
         choose(parser, dict.fromkeys(PARSER_MODES), "answer parser")
         self.parser = parser
         self.answers = read_answers_csv(path)
-        self._by_base = {os.path.basename(k): v for k, v in self.answers.items()}
+        self._lookup = KeyedTable(self.answers)
         self.source = self.name = f"answers:{Path(path).stem}"
 
     def _compute(self, query: PriorQuery) -> PriorResult:
         if not query.key:
             return PriorResult.failure(self.source, "no_key")
-        raw = self.answers.get(query.key)
+        raw, why = self._lookup.find(query.key)
         if raw is None:
-            raw = self._by_base.get(os.path.basename(query.key))
-        if raw is None:
-            return PriorResult.failure(self.source, "not_recorded")
+            return PriorResult.failure(self.source, why)
         return result_from_text(raw, self.source, self.parser)
 
 
