@@ -214,3 +214,18 @@ def test_sift_features_strongest_first_and_lossless_uint8():
     assert np.array_equal(few.keypoints, f.keypoints[:10])
     # a uniform frame has no features (the lens cap)
     assert len(x.extract(np.zeros((240, 320, 3), np.uint8), 50)) == 0
+
+
+def test_a_map_whose_images_folder_is_gone_answers_unverified(tmp_path):
+    """A map without stored features verifies against its images folder: when that folder is
+    gone, answers are unverified (said at open), not "verified" with no reference readable."""
+    from types import SimpleNamespace
+
+    from vlm_vpr_ros.localization.verification.stage import Verifier
+
+    ref_map = SimpleNamespace(path=tmp_path, manifest={"images": {"folder": "images"}},
+                              descriptor_identity=None)
+    gone = Verifier(ref_map)
+    assert not gone.enabled and "images is gone" in gone.unavailable
+    (tmp_path / "images").mkdir()
+    assert Verifier(ref_map).enabled

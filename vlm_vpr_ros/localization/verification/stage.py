@@ -98,9 +98,11 @@ class Verifier:
                                   max_keypoints=self.store.max_keypoints,
                                   query_max_keypoints=self.store.query_max_keypoints)
         else:
-            if self.images_root is None:
+            if self.images_root is None or not self.images_root.is_dir():
                 msg = ("the map stores no local features and no reference images folder is "
                        "reachable (give images_dir / --reference-images)")
+                if self.images_root is not None:
+                    msg += f"; {self.images_root} is gone"
                 if config.required:
                     raise MapError(f"{root}: {msg}")
                 log.warning("%s: %s; answers are unverified", root, msg)
