@@ -41,6 +41,8 @@ MANIFEST = "manifest.json"
 IDENTITY_KEYS = ("name", "dim", "release", "preprocessing")
 REQUIRED_KEYS = ("format", "version", "descriptor", "metric", "partition", "n_references",
                  "submaps", "files")
+#: manifest keys naming a JSON document of the map (:mod:`vlm_vpr_ros.maps.documents`)
+DOCUMENT_KEYS = ("calibration", "verification_calibration")
 #: files up to this size are checked whole (sha256) when a map is opened
 SMALL_FILE_BYTES = 256 * 1024
 #: larger files: the sha256 of this many 4 KiB pages (and the size) is their fingerprint
