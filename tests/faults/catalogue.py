@@ -261,4 +261,9 @@ CATALOGUE: dict[str, tuple[str, str, str]] = {
                                            "`map add`)",
                                     "map opens with the previous calibration; a rewrite goes "
                                     "to a new file, the old one kept one generation"),
+    "disk_full_descriptors_manifest": ("disk", "ENOSPC at the manifest of `build-map "
+                                               "--descriptors`, after its finished files "
+                                               "moved into the new map",
+                                       "exit 2 one line; the same command resumes and "
+                                       "finishes"),
 }

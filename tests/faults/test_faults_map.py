@@ -263,3 +263,36 @@ def test_answer_scientific():
         p = parse_answer(text)
         assert p.ok and (p.lat, p.lon) == (45.0, 1.0), (text, p)
     assert np.isclose(parse_answer("Latitude: 0.1e2 N, Longitude: 2 E").lat, 10.0)
+
+
+@pytest.mark.fault("disk_full_descriptors_manifest")
+def test_descriptors_build_resumes_after_failing_at_its_manifest(cli, tmp_path, monkeypatch):
+    """`build-map --descriptors`: ENOSPC at the manifest, after the finished submap files
+    moved into the staged map; the same command then resumes and finishes."""
+    from vlm_vpr_ros.files import atomic
+    from vlm_vpr_ros.maps.reference_map import ReferenceMap
+
+    rng = np.random.default_rng(5)
+    desc = rng.normal(size=(40, 512)).astype(np.float32)
+    np.save(tmp_path / "d.npy", desc / np.linalg.norm(desc, axis=1, keepdims=True))
+    pos = rng.uniform([45, 7], [45.1, 7.1], size=(40, 2))
+    (tmp_path / "c.csv").write_text("file,lat,lon\n" + "".join(
+        f"r{i}.jpg,{a:.7f},{b:.7f}\n" for i, (a, b) in enumerate(pos)))
+    real = atomic.atomic_write_text
+
+    def full(path, text, *a, **k):
+        if str(path).endswith("manifest.json"):
+            raise atomic.OutputError(f"cannot write {path}: No space left on device")
+        return real(path, text, *a, **k)
+
+    args = ("build-map", "--descriptors", tmp_path / "d.npy", "--coords", tmp_path / "c.csv",
+            "--out", tmp_path / "m", "--descriptor", "cosplace", "--clusters", "3",
+            "--index", "flat")
+    monkeypatch.setattr(atomic, "atomic_write_text", full)
+    exit2(cli(*args), "No space left on device")
+    assert not (tmp_path / "m").exists()
+    monkeypatch.setattr(atomic, "atomic_write_text", real)  # space freed
+    rc, _, errors = cli(*args)  # before the fix: exit 2 "cannot write ... k000.faiss"
+    assert rc == 0, errors
+    m = ReferenceMap.load(tmp_path / "m", verify=True)
+    assert m.n_references == 40 and not (tmp_path / ".m.partial").exists()
