@@ -266,4 +266,10 @@ CATALOGUE: dict[str, tuple[str, str, str]] = {
                                                "moved into the new map",
                                        "exit 2 one line; the same command resumes and "
                                        "finishes"),
+    "out_old_cleanup_interrupted": ("output", "Ctrl-C while the replaced output is deleted "
+                                              "after the swap (a half-deleted "
+                                              "`.NAME.partial/.old`)",
+                                    "the next `--overwrite` removes it and succeeds"),
+    "out_swap_interrupted": ("output", "Ctrl-C between the two renames of the swap",
+                             "the old output is put back at once, nothing deleted"),
 }

@@ -323,3 +323,57 @@ def test_describe_resumes_an_unfinished_folder_written_in_place(cli, demo_data, 
     rc, stdout, _ = _describe(cli, demo_data / "images", coords, out)
     assert rc == 0 and "1 shards resumed" in stdout and calls == [3, 2]
     assert json.loads((out / "describe.json").read_text())["described"] == 9
+
+
+def _old_map(tmp_path):
+    target = tmp_path / "m6"
+    target.mkdir()
+    (target / "manifest.json").write_text('{"format": "vlm_vpr_ros.map", "old": true}')
+    return target
+
+
+def _stage_new(target):
+    from vlm_vpr_ros.files.outputs import StagedOutput
+
+    with StagedOutput(target, "map", overwrite=True) as st:
+        (st.path / "manifest.json").write_text('{"format": "vlm_vpr_ros.map", "new": true}')
+        st.commit()
+
+
+@pytest.mark.fault("out_old_cleanup_interrupted")
+def test_overwrite_after_an_interrupted_cleanup_of_the_old_output(tmp_path):
+    """Ctrl-C while the replaced output was being deleted (after the swap): a half-deleted
+    `.NAME.partial/.old` is left; the next `--overwrite` removes it and succeeds."""
+    target = _old_map(tmp_path)
+    half = tmp_path / ".m6.partial" / ".old" / "submaps"
+    half.mkdir(parents=True)
+    (half / "k000.faiss").write_bytes(b"x" * 10)
+    _stage_new(target)  # before the fix: "cannot write m6: Directory not empty", forever
+    assert json.loads((target / "manifest.json").read_text()) == {
+        "format": "vlm_vpr_ros.map", "new": True}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m6"]
+
+
+@pytest.mark.fault("out_swap_interrupted")
+def test_ctrl_c_between_the_two_renames_keeps_the_old_output(tmp_path, monkeypatch):
+    """Ctrl-C right after the old output was moved aside, before the new one is moved in:
+    the old output is put back (not deleted with the staging folder)."""
+    import os
+
+    target = _old_map(tmp_path)
+    before = sha_tree(target)
+    real = os.replace
+
+    def interrupted(src, dst):
+        real(src, dst)
+        if str(dst).endswith(".old"):
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(os, "replace", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        _stage_new(target)
+    monkeypatch.setattr(os, "replace", real)
+    assert sha_tree(target) == before  # before the fix: m6 gone with .m6.partial
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m6"]
+    _stage_new(target)
+    assert json.loads((target / "manifest.json").read_text())["new"] is True

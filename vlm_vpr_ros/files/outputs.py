@@ -171,9 +171,12 @@ class StagedOutput:
         try:
             self.root.mkdir(parents=True, exist_ok=True)
             old = self.root / ".old"
-            if old.is_dir() and not self.target.exists():  # a swap cut short by a crash
-                os.replace(old, self.target)
+            if self._restore_old():  # a swap cut short by a crash
                 log.warning("restored %s from an interrupted swap", self.target)
+            elif old.exists() or old.is_symlink():  # the swap finished; its cleanup did not
+                stale = self.root / f".old-stale{os.getpid()}"
+                os.replace(old, stale)
+                shutil.rmtree(stale)
             if (self.adopt is not None and self.resumable and self.target.is_dir()
                     and not self.path.exists() and self.adopt(self.target)):
                 os.replace(self.target, self.path)
@@ -204,8 +207,23 @@ class StagedOutput:
         finally:
             self._unlock()
 
+    def _restore_old(self) -> bool:
+        """Put the old output back when a swap stopped between its two renames."""
+        old = self.root / ".old"
+        if old.is_dir() and not self.target.exists() and not self.target.is_symlink():
+            os.replace(old, self.target)
+            return True
+        return False
+
     def _clean_after_failure(self, exc_type) -> None:
-        """Keep resumable work (the next run continues it); drop everything else."""
+        """Keep resumable work (the next run continues it); drop everything else. The old
+        output is put back first when the failure (Ctrl-C included) cut the swap short."""
+        try:
+            self._restore_old()
+        except OSError as exc:  # keep everything: the next run restores it
+            log.error("%s could not be put back from %s (%s); run the same command again",
+                      self.target, self.root / ".old", exc)
+            return
         if self.resumable and exc_type is not None:
             remove_temp_files(self.root)
             if not any(p.is_file() for p in self.root.rglob("*")):
@@ -227,20 +245,19 @@ class StagedOutput:
         try:
             if self.marker:
                 write_marker(self.path, self.kind)
-            old = None
             if self.target.is_dir() and any(self.target.iterdir()):
                 # re-check: something may have appeared at the target while we were building
                 check_target(self.target, self.kind, self.overwrite)
-                old = self.root / ".old"
-                os.replace(self.target, old)
-            elif self.target.is_dir():
-                self.target.rmdir()
-            try:
+                try:
+                    os.replace(self.target, self.root / ".old")
+                    os.replace(self.path, self.target)
+                except BaseException:  # Ctrl-C too: never leave the target missing
+                    self._restore_old()
+                    raise
+            else:
+                if self.target.is_dir():
+                    self.target.rmdir()
                 os.replace(self.path, self.target)
-            except OSError:
-                if old is not None:
-                    os.replace(old, self.target)  # put the old output back
-                raise
         except OSError as exc:
             raise OutputError(describe_os_error(exc, self.target)) from None
         self.committed = True
