@@ -25,7 +25,7 @@ from pathlib import Path
 
 from vlm_vpr_ros.bags.messages import COMPRESSED, IMAGE_TYPES, NAVSATFIX, stamp_ns
 from vlm_vpr_ros.bags.reader import BagReader, RawMessage, deserialize, open_bag
-from vlm_vpr_ros.errors import BagError, ConfigError, ImageDecodeError, MapError
+from vlm_vpr_ros.errors import BagError, ConfigError, ImageDecodeError
 from vlm_vpr_ros.files.atomic import atomic_write_bytes
 
 log = logging.getLogger(__name__)
