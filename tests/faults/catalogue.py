@@ -272,4 +272,11 @@ CATALOGUE: dict[str, tuple[str, str, str]] = {
                                     "the next `--overwrite` removes it and succeeds"),
     "out_swap_interrupted": ("output", "Ctrl-C between the two renames of the swap",
                              "the old output is put back at once, nothing deleted"),
+    "lock_file_not_writable": ("writers", "another user holds `PARENT/.MAP.lock`, readable "
+                                          "but not writable for this user",
+                               "opened read-only, the same lock: exit 2 naming the holder"),
+    "lock_parent_not_writable": ("writers", "`map add` by a user who cannot create "
+                                            "`PARENT/.MAP.lock`",
+                                 "locks `MAP/.edit.lock`, which every edit and swap of the map "
+                                 "also takes: the others wait"),
 }

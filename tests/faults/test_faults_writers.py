@@ -377,3 +377,65 @@ def test_ctrl_c_between_the_two_renames_keeps_the_old_output(tmp_path, monkeypat
     assert sorted(p.name for p in tmp_path.iterdir()) == ["m6"]
     _stage_new(target)
     assert json.loads((target / "manifest.json").read_text())["new"] is True
+
+
+def _no_write(monkeypatch, lockfile):
+    """This process may read ``lockfile`` but not write or create it (another user's lock
+    file, or a parent folder read-only for us: root ignores permission bits, so simulated)."""
+    import builtins
+    import errno
+
+    from vlm_vpr_ros.files import lock
+
+    def guarded(path, mode="r", *a, **k):
+        if str(path) == str(lockfile) and mode != "r":
+            raise PermissionError(errno.EACCES, "Permission denied", str(path))
+        return builtins.open(path, mode, *a, **k)
+
+    monkeypatch.setattr(lock, "open", guarded, raising=False)
+
+
+@pytest.mark.fault("lock_file_not_writable")
+def test_edit_waits_on_another_users_lock_file(map_copy, monkeypatch, held):
+    """Another user's edit holds `PARENT/.MAP.lock`, which this user can read but not write:
+    this user's edit takes the same lock (read-only) and is refused, never a second lock."""
+    from vlm_vpr_ros.errors import MapError
+    from vlm_vpr_ros.maps.transaction import edit_lock
+
+    held(map_copy, "map add")  # the other user
+    _no_write(monkeypatch, map_copy.parent / ".map.lock")
+    with pytest.raises(MapError, match=r"being written by another process \(pid .*map add"):
+        with edit_lock(map_copy, "map remove"):  # before the fix: took MAP/.edit.lock
+            pass
+
+
+@pytest.mark.fault("lock_parent_not_writable")
+def test_edit_without_the_lock_beside_the_map_excludes_the_others(map_copy, monkeypatch):
+    """A user who cannot create `PARENT/.MAP.lock` edits under `MAP/.edit.lock` only; another
+    user's edit and rebuild of that map wait for it too (they take both locks)."""
+    from vlm_vpr_ros.errors import MapError, OutputError
+    from vlm_vpr_ros.files.lock import WriterLock
+    from vlm_vpr_ros.files.outputs import StagedOutput
+    from vlm_vpr_ros.maps.transaction import edit_lock
+
+    monkeypatch.setenv("VLM_VPR_LOCK_WAIT_S", "0")
+    _no_write(monkeypatch, map_copy.parent / ".map.lock")
+    mine = WriterLock(map_copy, "map add", inside_ok=True).acquire()
+    assert mine.path == map_copy / ".edit.lock"
+    from vlm_vpr_ros.files import lock
+
+    monkeypatch.delattr(lock, "open")  # the other user may write the parent
+    before = {k: v for k, v in sha_tree(map_copy).items() if not k.endswith(".edit.lock")}
+    try:
+        with pytest.raises(MapError, match="being written by another process"):
+            with edit_lock(map_copy, "map remove"):  # before the fix: both edits ran
+                pass
+        with pytest.raises(OutputError, match="being written by another process"):
+            with StagedOutput(map_copy, "map", overwrite=True) as st:
+                shutil.copytree(map_copy, st.path, dirs_exist_ok=True)
+                st.commit()  # the swap waits for the edit
+    finally:
+        mine.release()
+    assert sha_tree(map_copy) == before and not (map_copy / ".edit.lock").exists()
+    with edit_lock(map_copy, "map remove"):  # free again
+        pass

@@ -24,6 +24,7 @@ e.g. a v2 map build)::
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import logging
@@ -34,7 +35,7 @@ from typing import Callable, Iterable
 
 from vlm_vpr_ros.errors import OutputError
 from vlm_vpr_ros.files.atomic import describe_os_error
-from vlm_vpr_ros.files.lock import WriterLock
+from vlm_vpr_ros.files.lock import WriterLock, inside_lock
 
 log = logging.getLogger(__name__)
 
@@ -248,12 +249,15 @@ class StagedOutput:
             if self.target.is_dir() and any(self.target.iterdir()):
                 # re-check: something may have appeared at the target while we were building
                 check_target(self.target, self.kind, self.overwrite)
-                try:
-                    os.replace(self.target, self.root / ".old")
-                    os.replace(self.path, self.target)
-                except BaseException:  # Ctrl-C too: never leave the target missing
-                    self._restore_old()
-                    raise
+                # an edit by a user who could not lock beside the map holds the one inside
+                with (inside_lock(self.target, _WRITER[self.kind]) if self.kind == "map"
+                      else contextlib.nullcontext()):
+                    try:
+                        os.replace(self.target, self.root / ".old")
+                        os.replace(self.path, self.target)
+                    except BaseException:  # Ctrl-C too: never leave the target missing
+                        self._restore_old()
+                        raise
             else:
                 if self.target.is_dir():
                     self.target.rmdir()

@@ -37,8 +37,8 @@ def edit_lock(map_dir: Path, what: str = "a map edit") -> Iterator[None]:
         targets.append(real)
     held: list[WriterLock] = []
     try:
-        for t in targets:
-            held.append(WriterLock(t, what, inside_ok=True).acquire())
+        for k, t in enumerate(targets):  # one folder: its inside lock once
+            held.append(WriterLock(t, what, inside_ok=k == 0).acquire())
     except OutputError as exc:
         for lock in held:
             lock.release()
