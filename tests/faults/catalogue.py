@@ -279,4 +279,8 @@ CATALOGUE: dict[str, tuple[str, str, str]] = {
                                             "`PARENT/.MAP.lock`",
                                  "locks `MAP/.edit.lock`, which every edit and swap of the map "
                                  "also takes: the others wait"),
+    "map_field_types_more": ("map", 'manifest `index_params` 5, `generation` "x", `source` '
+                                    "[], `descriptor` without `name`, `submaps[0].recall` 3, "
+                                    "`retired` outside, `calibration` 7",
+                             "exit 2 naming the field (`map info`, `map remove`, `localize`)"),
 }

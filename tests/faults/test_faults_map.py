@@ -296,3 +296,29 @@ def test_descriptors_build_resumes_after_failing_at_its_manifest(cli, tmp_path, 
     assert rc == 0, errors
     m = ReferenceMap.load(tmp_path / "m", verify=True)
     assert m.n_references == 40 and not (tmp_path / ".m.partial").exists()
+
+
+@pytest.mark.fault("map_field_types_more")
+def test_more_manifest_fields_of_another_type(cli, map_copy, demo_data, queries, tmp_path):
+    """Fields read after the load (map info, map remove, localize): exit 2 naming the field,
+    never exit 1 'internal error' (AttributeError, ValueError, TypeError)."""
+    original = (map_copy / "manifest.json").read_text()
+    (tmp_path / "ids.txt").write_text("x\n")
+    cases = [
+        (lambda m: m.__setitem__("index_params", 5), "'index_params'", "info"),
+        (lambda m: m.__setitem__("index_params", {"rerank_factor": "8"}),
+         "'index_params.rerank_factor'", "info"),
+        (lambda m: m.__setitem__("generation", "x"), "'generation'", "remove"),
+        (lambda m: m.__setitem__("source", []), "'source'", "info"),
+        (lambda m: m["descriptor"].pop("name"), "'descriptor.name'", "info"),
+        (lambda m: m["submaps"][0].__setitem__("recall", 3), "'submaps[0].recall'", "info"),
+        (lambda m: m.__setitem__("retired", ["../../outside.txt"]), "'retired[0]'", "remove"),
+        (lambda m: m.__setitem__("calibration", 7), "'calibration'", "info"),
+    ]
+    for edit, needle, command in cases:
+        (map_copy / "manifest.json").write_text(original)
+        _edit(map_copy, edit)
+        args = (("map", "info", map_copy) if command == "info" else
+                ("map", "remove", map_copy, "--ids", tmp_path / "ids.txt"))
+        exit2(cli(*args), needle)
+    exit2(_localize(cli, map_copy, demo_data, queries, tmp_path), "'calibration'")
