@@ -283,4 +283,8 @@ CATALOGUE: dict[str, tuple[str, str, str]] = {
                                     "[], `descriptor` without `name`, `submaps[0].recall` 3, "
                                     "`retired` outside, `calibration` 7",
                              "exit 2 naming the field (`map info`, `map remove`, `localize`)"),
+    "localize_resume_descriptors": ("output", "`localize --resume --query-descriptors` after "
+                                              "an interrupted `--images` run",
+                                    "exit 2 naming `--resume`; `--overwrite` writes the results "
+                                    "and removes the stale `.partial`"),
 }

@@ -295,3 +295,18 @@ def test_calibration_rewrite_killed_before_the_manifest(map_copy, monkeypatch):
     last = ReferenceMap.load(map_copy, verify=True)
     assert last.manifest["retired"] == [second] and not (map_copy / first).exists()
     assert load_calibration(last) == old and first not in last.manifest["files"]
+
+
+@pytest.mark.fault("localize_resume_descriptors")
+def test_resume_with_query_descriptors(cli, twin, tmp_path):
+    """`localize --resume --query-descriptors` (one pass, nothing streamed to resume): exit 2
+    naming --resume; an --overwrite run leaves no stale RESULTS.csv.partial behind."""
+    root = twin[0]
+    partial = tmp_path / "r.csv.partial"
+    partial.write_text("file,lat,lon\n")  # an interrupted --images run
+    args = ("localize", "--map", root / "map", "--query-descriptors", root / "q.npy",
+            "--queries", root / "q.csv", "--out", tmp_path / "r.csv")
+    exit2(cli(*args, "--resume"), "--resume", "--query-descriptors")
+    assert not (tmp_path / "r.csv").exists() and partial.exists()
+    assert cli(*args, "--overwrite")[0] == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["r.csv"]
