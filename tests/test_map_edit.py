@@ -192,6 +192,9 @@ def test_teach_map_grows_by_a_second_drive(demo_data, tmp_path, caplog, monkeypa
     d2 = write_teach_bag(tmp_path / "drive2", places[8:], gaps=(4,), t0=1_800_000_000 * 10**9)
     assert cli(caplog, "build-map", "--bag", d1.path, "--out", tmp_path / "m", "--descriptor",
                FAST, "--descriptor-option", "max_side=320", "--clusters", "3")[0] == 0
+    # a mistyped map: refused before any folder is made (before: nope/ and its staging)
+    rc, err = cli(caplog, "map", "add", tmp_path / "nope" / "m", "--bag", d2.path)
+    assert rc == 2 and "map folder not found" in err and not (tmp_path / "nope").exists()
     rc, err = cli(caplog, "map", "add", tmp_path / "m", "--bag", d2.path)
     assert rc == 0, err
     m = ReferenceMap.load(tmp_path / "m")
