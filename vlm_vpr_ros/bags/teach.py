@@ -294,7 +294,8 @@ def build_map_from_bag(bag_path: str | os.PathLike[str], out_dir: str | os.PathL
     # built next to ``out`` and swapped in like every map build (the map's one writer lock; the
     # old map stays until the new one is complete and is put back after a crash in the swap)
     with StagedOutput(out, "map", overwrite) as staged:
-        scratch = staged.root / "teach"  # extracted images + CSV, deleted with the staging
+        # extracted images + CSV, deleted with the staging (a dot name: never the map's own)
+        scratch = staged.root / ".teach"
         shutil.rmtree(scratch, ignore_errors=True)
         res = extract_references(bag_path, scratch / "images", config, progress)
         write_coords(scratch / "references.csv", res.references)

@@ -162,7 +162,8 @@ class StagedOutput:
             raise OutputError(f"{target}: not a usable output folder name")
         self.root = self.target.parent / f".{name}.partial"
         self.path = self.root / name  # the new output is built here
-        self.work = self.root / "work"  # resumable scratch (kept after failures)
+        # resumable scratch (kept after failures); never the output's own folder
+        self.work = self.root / ("work" if name != "work" else ".work")
         self._lock = WriterLock(self.target, _WRITER[kind])
         self.committed = False
 
