@@ -111,6 +111,7 @@ def save_map(ref_map: Any, path: Path) -> dict:
             entry["recall"] = s.recall
         subs.append(entry)
     manifest = dict(ref_map.manifest)
+    manifest.pop("retired", None)  # files of the folder it was read from, not of this one
     kinds = sorted({s["kind"] for s in subs})
     manifest.update({
         "format": MAP_FORMAT, "version": VERSION, "software": f"vlm_vpr_ros {__version__}",
