@@ -192,6 +192,9 @@ def test_teach_map_grows_by_a_second_drive(demo_data, tmp_path, caplog, monkeypa
     d2 = write_teach_bag(tmp_path / "drive2", places[8:], gaps=(4,), t0=1_800_000_000 * 10**9)
     assert cli(caplog, "build-map", "--bag", d1.path, "--out", tmp_path / "m", "--descriptor",
                FAST, "--descriptor-option", "max_side=320", "--clusters", "3")[0] == 0
+    # a mistyped map: refused before any folder is made (before: nope/ and its staging)
+    rc, err = cli(caplog, "map", "add", tmp_path / "nope" / "m", "--bag", d2.path)
+    assert rc == 2 and "map folder not found" in err and not (tmp_path / "nope").exists()
     rc, err = cli(caplog, "map", "add", tmp_path / "m", "--bag", d2.path)
     assert rc == 0, err
     m = ReferenceMap.load(tmp_path / "m")
@@ -202,9 +205,18 @@ def test_teach_map_grows_by_a_second_drive(demo_data, tmp_path, caplog, monkeypa
     (tmp_path / "ids.txt").write_text("\n".join(drop))
     assert cli(caplog, "map", "remove", tmp_path / "m", "--ids", tmp_path / "ids.txt")[0] == 0
     assert verify_images(tmp_path / "m") == 13
-    assert not any((tmp_path / "m" / "images" / i).exists() for i in drop)
-    idx = json.loads((tmp_path / "m" / "manifest.json").read_text())["images"]
+    man = json.loads((tmp_path / "m" / "manifest.json").read_text())
+    idx = man["images"]
     assert idx["count"] == 13 and idx["index"].endswith(".g2.json")
+    # the removed images stay one generation (a reader of the previous manifest may show
+    # them), listed in `retired`, and the next edit deletes them
+    gone = [f"images/{i}" for i in drop]
+    assert set(gone) <= set(man["retired"]) and not set(gone) & set(man["files"])
+    assert all((tmp_path / "m" / g).is_file() for g in gone)
+    (tmp_path / "ids.txt").write_text(m.all_ids()[-1])
+    assert cli(caplog, "map", "remove", tmp_path / "m", "--ids", tmp_path / "ids.txt")[0] == 0
+    assert not any((tmp_path / "m" / g).exists() for g in gone)
+    assert verify_images(tmp_path / "m") == 12
     monkeypatch.setenv("VLM_VPR_LOCK_WAIT_S", "0")
     with pytest.raises(MapError, match="being written by another process"):
         with map_edit.edit_lock(tmp_path / "m"):

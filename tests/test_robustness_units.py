@@ -60,6 +60,13 @@ def test_staged_output_lock_and_swap(tmp_path):
             raise RuntimeError("boom")
     assert (target / "summary.json").read_text() == "{}"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ev"]
+    # an output named like the resumable scratch folder: the two stay apart
+    with StagedOutput(tmp_path / "work", "map", resumable=True) as s:
+        assert s.work != s.path and s.work.parent == s.path.parent
+        s.work.mkdir()
+        (s.path / "manifest.json").write_text('{"format": "vlm_vpr_ros.map"}')
+        s.commit()
+    assert sorted(p.name for p in (tmp_path / "work").iterdir()) == ["manifest.json"]
 
 
 def test_unique_rows_and_ranges(tmp_path):

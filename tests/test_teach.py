@@ -8,8 +8,10 @@ import csv
 import json
 import logging
 import math
+import os
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -105,7 +107,7 @@ def test_extraction_counts_every_reason(raw_bag, tmp_path):
     assert "16 references kept" in res.describe() and "no_fix_status" in res.describe()
 
 
-def test_build_map_from_bag_cli(raw_bag, demo_places, tmp_path, capsys):
+def test_build_map_from_bag_cli(raw_bag, demo_places, tmp_path, capsys, monkeypatch):
     out = tmp_path / "teach_map"
     rc = main(["build-map", "--bag", str(raw_bag.path), "--out", str(out), "--descriptor",
                "vlad_rootsift_fast", "--descriptor-option", "max_side=320", "--clusters", "4"])
@@ -126,6 +128,23 @@ def test_build_map_from_bag_cli(raw_bag, demo_places, tmp_path, capsys):
     assert main(["build-map", "--bag", str(raw_bag.path), "--out", str(out)]) == 2
     assert ReferenceMap.load(out).n_references == 16
     assert not list(tmp_path.glob(".teach_map*"))  # no staging left behind
+    # --overwrite cut short between the two renames of the swap (Ctrl-C): the old map is put
+    # back (before: it was left as .teach_map.old<pid> and out/ was missing)
+    before = (out / "manifest.json").read_bytes()
+    real = os.replace
+
+    def interrupted(src, dst):
+        real(src, dst)
+        if Path(src) == out:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(os, "replace", interrupted)
+    assert main(["build-map", "--bag", str(raw_bag.path), "--out", str(out), "--overwrite",
+                 "--descriptor", "vlad_rootsift_fast", "--descriptor-option", "max_side=320",
+                 "--clusters", "4"]) == 130
+    monkeypatch.setattr(os, "replace", real)
+    assert (out / "manifest.json").read_bytes() == before and verify_images(out) == 16
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["teach_map"]
 
 
 def test_sqlite3_teach_bag(raw_bag, tmp_path):

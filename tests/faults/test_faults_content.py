@@ -257,3 +257,56 @@ def test_map_add_under_an_open_map_is_not_a_content_change(map_copy, demo_data, 
     hyp = pipe.localize_image(rgb)
     assert np.isfinite(hyp.lat) and hyp.ref_id
     assert pipe.reloaded().map.n_references == 79
+
+
+@pytest.mark.fault("map_document_rewrite_killed")
+def test_calibration_rewrite_killed_before_the_manifest(map_copy, monkeypatch):
+    """Ctrl-C between a rewritten calibration and the manifest (``calibrate``, the
+    recalibration after ``map add``): the map still opens with the previous calibration; a
+    rewrite never touches a listed file, and the replaced one stays one generation."""
+    from vlm_vpr_ros.localization.fusion.calibration import load_calibration, save_calibration
+    from vlm_vpr_ros.maps import documents
+    from vlm_vpr_ros.maps.reference_map import ReferenceMap
+
+    m = ReferenceMap.load(map_copy)
+    first = m.manifest["calibration"]
+    assert first == "calibration.json"  # a fresh build: the plain name (old maps load alike)
+    old = load_calibration(m)
+    new = dict(old, beta=float(old["beta"]) * 2)
+    real = documents.atomic_write_json
+
+    def killed(path, obj, *a, **k):
+        if str(path).endswith("manifest.json"):
+            raise KeyboardInterrupt
+        return real(path, obj, *a, **k)
+
+    monkeypatch.setattr(documents, "atomic_write_json", killed)
+    with pytest.raises(KeyboardInterrupt):
+        save_calibration(m, new)
+    monkeypatch.setattr(documents, "atomic_write_json", real)
+    again = ReferenceMap.load(map_copy)  # before the fix: "does not match the manifest"
+    assert load_calibration(again) == old
+    save_calibration(again, new)
+    now = ReferenceMap.load(map_copy, verify=True)
+    second = now.manifest["calibration"]
+    assert second != first and load_calibration(now) == new
+    assert now.manifest["retired"] == [first] and (map_copy / first).is_file()
+    save_calibration(now, old)  # the next rewrite deletes the one retired before
+    last = ReferenceMap.load(map_copy, verify=True)
+    assert last.manifest["retired"] == [second] and not (map_copy / first).exists()
+    assert load_calibration(last) == old and first not in last.manifest["files"]
+
+
+@pytest.mark.fault("localize_resume_descriptors")
+def test_resume_with_query_descriptors(cli, twin, tmp_path):
+    """`localize --resume --query-descriptors` (one pass, nothing streamed to resume): exit 2
+    naming --resume; an --overwrite run leaves no stale RESULTS.csv.partial behind."""
+    root = twin[0]
+    partial = tmp_path / "r.csv.partial"
+    partial.write_text("file,lat,lon\n")  # an interrupted --images run
+    args = ("localize", "--map", root / "map", "--query-descriptors", root / "q.npy",
+            "--queries", root / "q.csv", "--out", tmp_path / "r.csv")
+    exit2(cli(*args, "--resume"), "--resume", "--query-descriptors")
+    assert not (tmp_path / "r.csv").exists() and partial.exists()
+    assert cli(*args, "--overwrite")[0] == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["r.csv"]

@@ -263,3 +263,62 @@ def test_answer_scientific():
         p = parse_answer(text)
         assert p.ok and (p.lat, p.lon) == (45.0, 1.0), (text, p)
     assert np.isclose(parse_answer("Latitude: 0.1e2 N, Longitude: 2 E").lat, 10.0)
+
+
+@pytest.mark.fault("disk_full_descriptors_manifest")
+def test_descriptors_build_resumes_after_failing_at_its_manifest(cli, tmp_path, monkeypatch):
+    """`build-map --descriptors`: ENOSPC at the manifest, after the finished submap files
+    moved into the staged map; the same command then resumes and finishes."""
+    from vlm_vpr_ros.files import atomic
+    from vlm_vpr_ros.maps.reference_map import ReferenceMap
+
+    rng = np.random.default_rng(5)
+    desc = rng.normal(size=(40, 512)).astype(np.float32)
+    np.save(tmp_path / "d.npy", desc / np.linalg.norm(desc, axis=1, keepdims=True))
+    pos = rng.uniform([45, 7], [45.1, 7.1], size=(40, 2))
+    (tmp_path / "c.csv").write_text("file,lat,lon\n" + "".join(
+        f"r{i}.jpg,{a:.7f},{b:.7f}\n" for i, (a, b) in enumerate(pos)))
+    real = atomic.atomic_write_text
+
+    def full(path, text, *a, **k):
+        if str(path).endswith("manifest.json"):
+            raise atomic.OutputError(f"cannot write {path}: No space left on device")
+        return real(path, text, *a, **k)
+
+    args = ("build-map", "--descriptors", tmp_path / "d.npy", "--coords", tmp_path / "c.csv",
+            "--out", tmp_path / "m", "--descriptor", "cosplace", "--clusters", "3",
+            "--index", "flat")
+    monkeypatch.setattr(atomic, "atomic_write_text", full)
+    exit2(cli(*args), "No space left on device")
+    assert not (tmp_path / "m").exists()
+    monkeypatch.setattr(atomic, "atomic_write_text", real)  # space freed
+    rc, _, errors = cli(*args)  # before the fix: exit 2 "cannot write ... k000.faiss"
+    assert rc == 0, errors
+    m = ReferenceMap.load(tmp_path / "m", verify=True)
+    assert m.n_references == 40 and not (tmp_path / ".m.partial").exists()
+
+
+@pytest.mark.fault("map_field_types_more")
+def test_more_manifest_fields_of_another_type(cli, map_copy, demo_data, queries, tmp_path):
+    """Fields read after the load (map info, map remove, localize): exit 2 naming the field,
+    never exit 1 'internal error' (AttributeError, ValueError, TypeError)."""
+    original = (map_copy / "manifest.json").read_text()
+    (tmp_path / "ids.txt").write_text("x\n")
+    cases = [
+        (lambda m: m.__setitem__("index_params", 5), "'index_params'", "info"),
+        (lambda m: m.__setitem__("index_params", {"rerank_factor": "8"}),
+         "'index_params.rerank_factor'", "info"),
+        (lambda m: m.__setitem__("generation", "x"), "'generation'", "remove"),
+        (lambda m: m.__setitem__("source", []), "'source'", "info"),
+        (lambda m: m["descriptor"].pop("name"), "'descriptor.name'", "info"),
+        (lambda m: m["submaps"][0].__setitem__("recall", 3), "'submaps[0].recall'", "info"),
+        (lambda m: m.__setitem__("retired", ["../../outside.txt"]), "'retired[0]'", "remove"),
+        (lambda m: m.__setitem__("calibration", 7), "'calibration'", "info"),
+    ]
+    for edit, needle, command in cases:
+        (map_copy / "manifest.json").write_text(original)
+        _edit(map_copy, edit)
+        args = (("map", "info", map_copy) if command == "info" else
+                ("map", "remove", map_copy, "--ids", tmp_path / "ids.txt"))
+        exit2(cli(*args), needle)
+    exit2(_localize(cli, map_copy, demo_data, queries, tmp_path), "'calibration'")

@@ -323,3 +323,119 @@ def test_describe_resumes_an_unfinished_folder_written_in_place(cli, demo_data, 
     rc, stdout, _ = _describe(cli, demo_data / "images", coords, out)
     assert rc == 0 and "1 shards resumed" in stdout and calls == [3, 2]
     assert json.loads((out / "describe.json").read_text())["described"] == 9
+
+
+def _old_map(tmp_path):
+    target = tmp_path / "m6"
+    target.mkdir()
+    (target / "manifest.json").write_text('{"format": "vlm_vpr_ros.map", "old": true}')
+    return target
+
+
+def _stage_new(target):
+    from vlm_vpr_ros.files.outputs import StagedOutput
+
+    with StagedOutput(target, "map", overwrite=True) as st:
+        (st.path / "manifest.json").write_text('{"format": "vlm_vpr_ros.map", "new": true}')
+        st.commit()
+
+
+@pytest.mark.fault("out_old_cleanup_interrupted")
+def test_overwrite_after_an_interrupted_cleanup_of_the_old_output(tmp_path):
+    """Ctrl-C while the replaced output was being deleted (after the swap): a half-deleted
+    `.NAME.partial/.old` is left; the next `--overwrite` removes it and succeeds."""
+    target = _old_map(tmp_path)
+    half = tmp_path / ".m6.partial" / ".old" / "submaps"
+    half.mkdir(parents=True)
+    (half / "k000.faiss").write_bytes(b"x" * 10)
+    _stage_new(target)  # before the fix: "cannot write m6: Directory not empty", forever
+    assert json.loads((target / "manifest.json").read_text()) == {
+        "format": "vlm_vpr_ros.map", "new": True}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m6"]
+
+
+@pytest.mark.fault("out_swap_interrupted")
+def test_ctrl_c_between_the_two_renames_keeps_the_old_output(tmp_path, monkeypatch):
+    """Ctrl-C right after the old output was moved aside, before the new one is moved in:
+    the old output is put back (not deleted with the staging folder)."""
+    import os
+
+    target = _old_map(tmp_path)
+    before = sha_tree(target)
+    real = os.replace
+
+    def interrupted(src, dst):
+        real(src, dst)
+        if str(dst).endswith(".old"):
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(os, "replace", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        _stage_new(target)
+    monkeypatch.setattr(os, "replace", real)
+    assert sha_tree(target) == before  # before the fix: m6 gone with .m6.partial
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m6"]
+    _stage_new(target)
+    assert json.loads((target / "manifest.json").read_text())["new"] is True
+
+
+def _no_write(monkeypatch, lockfile):
+    """This process may read ``lockfile`` but not write or create it (another user's lock
+    file, or a parent folder read-only for us: root ignores permission bits, so simulated)."""
+    import builtins
+    import errno
+
+    from vlm_vpr_ros.files import lock
+
+    def guarded(path, mode="r", *a, **k):
+        if str(path) == str(lockfile) and mode != "r":
+            raise PermissionError(errno.EACCES, "Permission denied", str(path))
+        return builtins.open(path, mode, *a, **k)
+
+    monkeypatch.setattr(lock, "open", guarded, raising=False)
+
+
+@pytest.mark.fault("lock_file_not_writable")
+def test_edit_waits_on_another_users_lock_file(map_copy, monkeypatch, held):
+    """Another user's edit holds `PARENT/.MAP.lock`, which this user can read but not write:
+    this user's edit takes the same lock (read-only) and is refused, never a second lock."""
+    from vlm_vpr_ros.errors import MapError
+    from vlm_vpr_ros.maps.transaction import edit_lock
+
+    held(map_copy, "map add")  # the other user
+    _no_write(monkeypatch, map_copy.parent / ".map.lock")
+    with pytest.raises(MapError, match=r"being written by another process \(pid .*map add"):
+        with edit_lock(map_copy, "map remove"):  # before the fix: took MAP/.edit.lock
+            pass
+
+
+@pytest.mark.fault("lock_parent_not_writable")
+def test_edit_without_the_lock_beside_the_map_excludes_the_others(map_copy, monkeypatch):
+    """A user who cannot create `PARENT/.MAP.lock` edits under `MAP/.edit.lock` only; another
+    user's edit and rebuild of that map wait for it too (they take both locks)."""
+    from vlm_vpr_ros.errors import MapError, OutputError
+    from vlm_vpr_ros.files.lock import WriterLock
+    from vlm_vpr_ros.files.outputs import StagedOutput
+    from vlm_vpr_ros.maps.transaction import edit_lock
+
+    monkeypatch.setenv("VLM_VPR_LOCK_WAIT_S", "0")
+    _no_write(monkeypatch, map_copy.parent / ".map.lock")
+    mine = WriterLock(map_copy, "map add", inside_ok=True).acquire()
+    assert mine.path == map_copy / ".edit.lock"
+    from vlm_vpr_ros.files import lock
+
+    monkeypatch.delattr(lock, "open")  # the other user may write the parent
+    before = {k: v for k, v in sha_tree(map_copy).items() if not k.endswith(".edit.lock")}
+    try:
+        with pytest.raises(MapError, match="being written by another process"):
+            with edit_lock(map_copy, "map remove"):  # before the fix: both edits ran
+                pass
+        with pytest.raises(OutputError, match="being written by another process"):
+            with StagedOutput(map_copy, "map", overwrite=True) as st:
+                shutil.copytree(map_copy, st.path, dirs_exist_ok=True)
+                st.commit()  # the swap waits for the edit
+    finally:
+        mine.release()
+    assert sha_tree(map_copy) == before and not (map_copy / ".edit.lock").exists()
+    with edit_lock(map_copy, "map remove"):  # free again
+        pass

@@ -25,7 +25,7 @@ from pathlib import Path
 
 from vlm_vpr_ros.bags.messages import COMPRESSED, IMAGE_TYPES, NAVSATFIX, stamp_ns
 from vlm_vpr_ros.bags.reader import BagReader, RawMessage, deserialize, open_bag
-from vlm_vpr_ros.errors import BagError, ConfigError, ImageDecodeError, MapError
+from vlm_vpr_ros.errors import BagError, ConfigError, ImageDecodeError
 from vlm_vpr_ros.files.atomic import atomic_write_bytes
 
 log = logging.getLogger(__name__)
@@ -288,40 +288,28 @@ def build_map_from_bag(bag_path: str | os.PathLike[str], out_dir: str | os.PathL
     from vlm_vpr_ros.maps.reference_map import ReferenceMap
     from vlm_vpr_ros.files.atomic import atomic_write_json
 
-    from vlm_vpr_ros.files.lock import WriterLock
-    from vlm_vpr_ros.files.outputs import check_target
+    from vlm_vpr_ros.files.outputs import StagedOutput
 
     out = Path(out_dir)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    # the map's one writer lock (map add/remove and build-map take it too)
-    with WriterLock(out, "build-map --bag"):
-        if out.exists() and not overwrite:
-            raise MapError(f"{out} already exists; pass --overwrite to replace it or choose "
-                           "another --out")
-        check_target(out, "map", overwrite)  # --overwrite replaces a map, never a user's folder
-        stage = out.with_name(f".{out.name}.teach{os.getpid()}")
-        shutil.rmtree(stage, ignore_errors=True)
-        try:
-            res = extract_references(bag_path, stage / "images", config, progress)
-            write_coords(stage / "references.csv", res.references)
-            built = stage / "map"
-            build_map(stage / "images", stage / "references.csv", built, progress=progress,
-                      **build_options)
-            manifest_path = built / "manifest.json"
-            manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
-            cfg = config or TeachConfig()
-            manifest["source"]["teach"] = {**res.summary(), "config": {
-                "fix_tolerance_s": cfg.fix_tolerance_s, "min_spacing_m": cfg.min_spacing_m,
-                "max_fix_sigma_m": cfg.max_fix_sigma_m}}
-            atomic_write_json(manifest_path, manifest)
-            attach_images(built, stage / "images")
-            if out.exists():
-                old = out.with_name(f".{out.name}.old{os.getpid()}")
-                os.replace(out, old)
-                os.replace(built, out)
-                shutil.rmtree(old, ignore_errors=True)
-            else:
-                os.replace(built, out)
-        finally:
-            shutil.rmtree(stage, ignore_errors=True)
+    # built next to ``out`` and swapped in like every map build (the map's one writer lock; the
+    # old map stays until the new one is complete and is put back after a crash in the swap)
+    with StagedOutput(out, "map", overwrite) as staged:
+        # extracted images + CSV, deleted with the staging (a dot name: never the map's own)
+        scratch = staged.root / ".teach"
+        shutil.rmtree(scratch, ignore_errors=True)
+        res = extract_references(bag_path, scratch / "images", config, progress)
+        write_coords(scratch / "references.csv", res.references)
+        built = staged.path
+        build_map(scratch / "images", scratch / "references.csv", built, progress=progress,
+                  **build_options)
+        manifest_path = built / "manifest.json"
+        manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
+        cfg = config or TeachConfig()
+        manifest["source"]["teach"] = {**res.summary(), "config": {
+            "fix_tolerance_s": cfg.fix_tolerance_s, "min_spacing_m": cfg.min_spacing_m,
+            "max_fix_sigma_m": cfg.max_fix_sigma_m}}
+        atomic_write_json(manifest_path, manifest)
+        attach_images(built, scratch / "images")
+        shutil.rmtree(scratch, ignore_errors=True)
+        staged.commit(validate=lambda p: ReferenceMap.load(p, verify=False))
     return ReferenceMap.load(out, verify=False), res

@@ -255,6 +255,9 @@ def cmd_localize(args: argparse.Namespace) -> int:
     from vlm_vpr_ros.files.csvio import read_file_column
 
     out = Path(args.out)
+    if args.query_descriptors and args.resume:  # one pass, written whole at the end
+        raise DataError("--resume is for --images runs (streamed rows); a --query-descriptors "
+                        "run writes its results at the end: run it again with --overwrite")
     files = read_file_column(args.queries)
     done = _localize_start(out, args.resume, args.overwrite)
     if args.query_descriptors:
@@ -345,6 +348,8 @@ def _localize_descriptors(args: argparse.Namespace, files: list[str]) -> int:
     finally:
         provider.close()
     write_csv_atomic(args.out, RESULT_FIELDS, rows)
+    # an interrupted --images run's rows (--overwrite was given): superseded now
+    Path(args.out).with_name(Path(args.out).name + ".partial").unlink(missing_ok=True)
     flagged = sum(1 for r in rows if r.get("flags"))
     print(f"{len(rows)} queries localized -> {args.out} ({flagged} with flags)")
     return 0

@@ -58,8 +58,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     q.set_defaults(func=cmd_info)
 
     q = msub.add_parser("verify", help="check the sha256 of every file against the manifest",
-                        description="The full integrity pass that opening a map skips "
-                                    "(opening only checks the manifest and file sizes).")
+                        description="The full integrity pass: every byte against its "
+                                    "sha256 (opening a map checks sizes, small files whole "
+                                    "and sampled pages of the large ones).")
     q.add_argument("map", metavar="MAP")
     q.set_defaults(func=cmd_verify)
 
@@ -89,7 +90,9 @@ def cmd_map_add(args: argparse.Namespace) -> int:
         print(res.describe())
         return 0
     from vlm_vpr_ros.bags.teach import extract_references
+    from vlm_vpr_ros.maps.format import read_manifest
 
+    read_manifest(Path(args.map))  # a map, before any folder is made beside it
     # the frames are extracted beside the map (not into it: a rebuild that swaps the map
     # folder meanwhile would take them away); inside only when the parent is read-only
     target = Path(args.map)

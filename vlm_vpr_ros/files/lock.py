@@ -14,20 +14,27 @@ A second writer waits up to :data:`WAIT_S` seconds (environment ``VLM_VPR_LOCK_W
 refuse at once), then is refused with one line. ``flock`` locks are released by the kernel when
 the holder dies (Ctrl-C, ``kill -9``), so a crash never leaves a map locked.
 
-When the parent folder cannot hold a lock file (read-only, owned by another user) the lock falls
-back to ``NAME/.edit.lock`` inside the folder, only for in-place edits (``inside_ok``): a build
-could not swap that folder either, since renaming it needs the same write permission.
+A lock file that exists but is not writable for this user (another user's writer holds it) is
+opened read-only: ``flock`` works on a read-only descriptor, so users share one lock.
+
+In-place edits (``inside_ok``) also lock ``NAME/.edit.lock`` inside the folder, after the lock
+beside it; a build's swap locks it too (:func:`inside_lock`). A user who cannot create the lock
+beside the folder (its parent is read-only for them, and no lock file is there) locks only the
+inside one: every other edit and every swap of that folder takes it as well, so the two never
+run together. A build could not swap that folder for them either (renaming it needs the same
+write permission).
 """
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import fcntl
 import logging
 import os
 import time
 from pathlib import Path
-from typing import IO
+from typing import IO, Iterator
 
 from vlm_vpr_ros.errors import OutputError
 
@@ -66,81 +73,51 @@ def _holder_line(what: str) -> str:
     return f"pid {os.getpid()}, {what}, since {time.strftime('%Y-%m-%d %H:%M:%S')}"
 
 
-class WriterLock:
-    """``with WriterLock(target, "write"):`` — exclusive writer lock of ``target`` (a folder
-    that may not exist yet). Raises :class:`OutputError` (one line) when another process holds
-    it for longer than the wait."""
+_NO_WRITE = (errno.EACCES, errno.EPERM, errno.EROFS)
 
-    def __init__(self, target: str | os.PathLike[str], what: str = "a writer",
-                 inside_ok: bool = False, wait: float | None = None) -> None:
-        """``what``: the operation, named to a writer that is refused (e.g. "map add")."""
-        self.target = Path(target)
-        self.what = what
-        self.path = lock_path(target)
-        self.inside_ok = inside_ok
-        self.wait = wait_s() if wait is None else float(wait)
-        self._fh: IO[str] | None = None
+
+class _Flock:
+    """One ``flock``-ed lock file: created when missing, deleted by its holder before it lets
+    go (see the module docstring)."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.fh: IO[str] | None = None
 
     def _open(self) -> IO[str]:
         try:
-            self.path.parent.mkdir(parents=True, exist_ok=True)  # a new output's parent
             return open(self.path, "a+", encoding="utf-8")
         except OSError as exc:
-            inside = self.target / ".edit.lock"
-            if self.inside_ok and exc.errno in (errno.EACCES, errno.EPERM, errno.EROFS) \
-                    and self.target.is_dir():
-                log.debug("cannot create %s (%s): locking %s instead", self.path,
-                          exc.strerror, inside)
-                self.path = inside
-                return open(inside, "a+", encoding="utf-8")
-            raise OutputError(f"cannot lock {self.target}: cannot create {self.path} "
-                              f"({exc.strerror}); choose a folder you can write to") from None
+            if exc.errno not in _NO_WRITE or not self.path.is_file():
+                raise
+            return open(self.path, "r", encoding="utf-8")  # flock works read-only too
 
-    def holder(self) -> str:
-        """The line the current holder wrote ('' when unknown)."""
-        try:
-            return self.path.read_text(encoding="utf-8", errors="replace").strip()[:200]
-        except OSError:
-            return ""
-
-    def acquire(self) -> "WriterLock":
-        deadline = time.monotonic() + self.wait
-        told = False
+    def try_lock(self, what: str) -> bool:
+        """One attempt (OSError when the file cannot be opened at all)."""
         while True:
             fh = self._open()
             try:
                 fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
                 fh.close()
-                if time.monotonic() >= deadline:
-                    who = self.holder()
-                    raise OutputError(
-                        f"{self.target} is being written by another process"
-                        f"{f' ({who})' if who else ''}; try again when it has finished "
-                        f"(lock {self.path})") from None
-                if not told:
-                    log.info("waiting up to %.0f s for %s: another process is writing it (%s)",
-                             self.wait, self.target, self.holder() or "unknown")
-                    told = True
-                time.sleep(_POLL_S)
-                continue
-            except OSError as exc:
+                return False
+            except OSError:
                 fh.close()
-                raise OutputError(f"cannot lock {self.target}: {exc.strerror}") from None
-            if self._still_linked(fh):
+                raise
+            if self._linked(fh):
                 break
             fh.close()  # the holder deleted it while we waited: lock the new file
         try:  # who holds it, for the message of a refused writer (best effort)
             fh.seek(0)
             fh.truncate()
-            fh.write(_holder_line(self.what) + "\n")
+            fh.write(_holder_line(what) + "\n")
             fh.flush()
-        except OSError:
+        except OSError:  # a read-only descriptor (io.UnsupportedOperation is an OSError)
             pass
-        self._fh = fh
-        return self
+        self.fh = fh
+        return True
 
-    def _still_linked(self, fh: IO[str]) -> bool:
+    def _linked(self, fh: IO[str]) -> bool:
         try:
             st = os.stat(self.path)
         except FileNotFoundError:
@@ -148,21 +125,124 @@ class WriterLock:
         mine = os.fstat(fh.fileno())
         return (st.st_dev, st.st_ino) == (mine.st_dev, mine.st_ino)
 
+    def holder(self) -> str:
+        try:
+            return self.path.read_text(encoding="utf-8", errors="replace").strip()[:200]
+        except OSError:
+            return ""
+
     def release(self) -> None:
-        if self._fh is not None:
-            try:
-                self.path.unlink()  # while still locked: see the module docstring
-            except OSError:
-                pass
-            self._fh.close()  # closing the descriptor releases the flock
-            self._fh = None
+        if self.fh is not None:
+            if self._linked(self.fh):  # never another holder's file (a swapped folder)
+                try:
+                    self.path.unlink()  # while still locked: see the module docstring
+                except OSError:
+                    pass
+            self.fh.close()  # closing the descriptor releases the flock
+            self.fh = None
+
+
+class WriterLock:
+    """``with WriterLock(target, "write"):`` — exclusive writer lock of ``target`` (a folder
+    that may not exist yet). Raises :class:`OutputError` (one line) when another process holds
+    it for longer than the wait."""
+
+    def __init__(self, target: str | os.PathLike[str], what: str = "a writer",
+                 inside_ok: bool = False, wait: float | None = None) -> None:
+        """``what``: the operation, named to a writer that is refused (e.g. "map add");
+        ``inside_ok``: an in-place edit (also locks ``target/.edit.lock``)."""
+        self.target = Path(target)
+        self.what = what
+        self.path = lock_path(target)
+        self.inside_ok = inside_ok
+        self.wait = wait_s() if wait is None else float(wait)
+        self._held: list[_Flock] = []
+        #: lock ``target/.edit.lock`` only (:func:`inside_lock`)
+        self.inside_only = False
+
+    def _parts(self) -> list[_Flock]:
+        """The lock files to take, in order (the first one is :attr:`path`)."""
+        if self.inside_only:
+            self.path = self.target / ".edit.lock"
+            return [_Flock(self.path)] if self.target.is_dir() else []
+        outer = _Flock(self.path)
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)  # a new output's parent
+            outer._open().close()
+        except OSError as exc:
+            if not (self.inside_ok and exc.errno in _NO_WRITE and self.target.is_dir()
+                    and not os.path.lexists(self.path)):
+                raise OutputError(f"cannot lock {self.target}: cannot create {self.path} "
+                                  f"({exc.strerror}); choose a folder you can write to"
+                                  ) from None
+            log.debug("cannot create %s (%s): locking %s only", self.path, exc.strerror,
+                      self.target / ".edit.lock")
+            self.path = self.target / ".edit.lock"
+            return [_Flock(self.path)]
+        if self.inside_ok and self.target.is_dir():
+            return [outer, _Flock(self.target / ".edit.lock")]
+        return [outer]
+
+    def holder(self) -> str:
+        """The line the current holder wrote ('' when unknown)."""
+        return _Flock(self.path).holder()
+
+    def acquire(self) -> "WriterLock":
+        deadline = time.monotonic() + self.wait
+        parts = self._parts()
+        told = False
+        try:
+            for k, part in enumerate(parts):
+                while not self._try(part, k):
+                    if time.monotonic() >= deadline:
+                        who = part.holder()
+                        raise OutputError(
+                            f"{self.target} is being written by another process"
+                            f"{f' ({who})' if who else ''}; try again when it has finished "
+                            f"(lock {part.path})")
+                    if not told:
+                        log.info("waiting up to %.0f s for %s: another process is writing it "
+                                 "(%s)", self.wait, self.target, part.holder() or "unknown")
+                        told = True
+                    time.sleep(_POLL_S)
+        except BaseException:
+            self.release()
+            raise
+        return self
+
+    def _try(self, part: _Flock, k: int) -> bool:
+        try:
+            ok = part.try_lock(self.what)
+        except OSError as exc:
+            if (k > 0 or self.inside_only) and exc.errno in _NO_WRITE:
+                return True  # the folder is read-only for us: no edit of ours to exclude
+            raise OutputError(f"cannot lock {self.target}: {part.path}: {exc.strerror}"
+                              ) from None
+        if ok:
+            self._held.append(part)
+        return ok
+
+    def release(self) -> None:
+        while self._held:
+            self._held.pop().release()
 
     @property
     def held(self) -> bool:
-        return self._fh is not None
+        return bool(self._held)
 
     def __enter__(self) -> "WriterLock":
         return self.acquire()
 
     def __exit__(self, *exc) -> None:
         self.release()
+
+
+@contextlib.contextmanager
+def inside_lock(target: Path, what: str, wait: float | None = None) -> Iterator[None]:
+    """``target/.edit.lock`` while a build swaps ``target`` out (an edit of it by a user who
+    could not lock beside it holds that one): waits like :class:`WriterLock`. Nothing to lock
+    when ``target`` is not a folder or is read-only for us (no one else can edit it then)."""
+    lock = WriterLock(target, what, wait=wait)
+    lock.inside_only = True
+    with lock:
+        yield

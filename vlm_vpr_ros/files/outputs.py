@@ -24,6 +24,7 @@ e.g. a v2 map build)::
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import logging
@@ -34,7 +35,7 @@ from typing import Callable, Iterable
 
 from vlm_vpr_ros.errors import OutputError
 from vlm_vpr_ros.files.atomic import describe_os_error
-from vlm_vpr_ros.files.lock import WriterLock
+from vlm_vpr_ros.files.lock import WriterLock, inside_lock
 
 log = logging.getLogger(__name__)
 
@@ -161,7 +162,8 @@ class StagedOutput:
             raise OutputError(f"{target}: not a usable output folder name")
         self.root = self.target.parent / f".{name}.partial"
         self.path = self.root / name  # the new output is built here
-        self.work = self.root / "work"  # resumable scratch (kept after failures)
+        # resumable scratch (kept after failures); never the output's own folder
+        self.work = self.root / ("work" if name != "work" else ".work")
         self._lock = WriterLock(self.target, _WRITER[kind])
         self.committed = False
 
@@ -171,9 +173,12 @@ class StagedOutput:
         try:
             self.root.mkdir(parents=True, exist_ok=True)
             old = self.root / ".old"
-            if old.is_dir() and not self.target.exists():  # a swap cut short by a crash
-                os.replace(old, self.target)
+            if self._restore_old():  # a swap cut short by a crash
                 log.warning("restored %s from an interrupted swap", self.target)
+            elif old.exists() or old.is_symlink():  # the swap finished; its cleanup did not
+                stale = self.root / f".old-stale{os.getpid()}"
+                os.replace(old, stale)
+                shutil.rmtree(stale)
             if (self.adopt is not None and self.resumable and self.target.is_dir()
                     and not self.path.exists() and self.adopt(self.target)):
                 os.replace(self.target, self.path)
@@ -204,8 +209,23 @@ class StagedOutput:
         finally:
             self._unlock()
 
+    def _restore_old(self) -> bool:
+        """Put the old output back when a swap stopped between its two renames."""
+        old = self.root / ".old"
+        if old.is_dir() and not self.target.exists() and not self.target.is_symlink():
+            os.replace(old, self.target)
+            return True
+        return False
+
     def _clean_after_failure(self, exc_type) -> None:
-        """Keep resumable work (the next run continues it); drop everything else."""
+        """Keep resumable work (the next run continues it); drop everything else. The old
+        output is put back first when the failure (Ctrl-C included) cut the swap short."""
+        try:
+            self._restore_old()
+        except OSError as exc:  # keep everything: the next run restores it
+            log.error("%s could not be put back from %s (%s); run the same command again",
+                      self.target, self.root / ".old", exc)
+            return
         if self.resumable and exc_type is not None:
             remove_temp_files(self.root)
             if not any(p.is_file() for p in self.root.rglob("*")):
@@ -227,20 +247,22 @@ class StagedOutput:
         try:
             if self.marker:
                 write_marker(self.path, self.kind)
-            old = None
             if self.target.is_dir() and any(self.target.iterdir()):
                 # re-check: something may have appeared at the target while we were building
                 check_target(self.target, self.kind, self.overwrite)
-                old = self.root / ".old"
-                os.replace(self.target, old)
-            elif self.target.is_dir():
-                self.target.rmdir()
-            try:
+                # an edit by a user who could not lock beside the map holds the one inside
+                with (inside_lock(self.target, _WRITER[self.kind]) if self.kind == "map"
+                      else contextlib.nullcontext()):
+                    try:
+                        os.replace(self.target, self.root / ".old")
+                        os.replace(self.path, self.target)
+                    except BaseException:  # Ctrl-C too: never leave the target missing
+                        self._restore_old()
+                        raise
+            else:
+                if self.target.is_dir():
+                    self.target.rmdir()
                 os.replace(self.path, self.target)
-            except OSError:
-                if old is not None:
-                    os.replace(old, self.target)  # put the old output back
-                raise
         except OSError as exc:
             raise OutputError(describe_os_error(exc, self.target)) from None
         self.committed = True

@@ -25,6 +25,7 @@ from vlm_vpr_ros.errors import DataError, MapError
 from vlm_vpr_ros.geodesy import farthest_km
 from vlm_vpr_ros.maps import indexes
 from vlm_vpr_ros.maps.balance import split_large
+from vlm_vpr_ros.maps.format import content_matches
 from vlm_vpr_ros.maps.sources import CHUNK, DescriptorSource, descriptor_identity, open_source
 from vlm_vpr_ros.maps.store import (VERSION, encode_ids, file_table, pq_name, prefetch_rows,
                                     write_submap)
@@ -356,8 +357,8 @@ def _build_into(staged: Any, source: DescriptorSource, identity: dict, state: di
         atomic_save_npz(stage / "descriptor_state.npz", state)
         table.update(file_table(stage, ["descriptor_state.npz"]))
     (out_dir / "submaps").mkdir(parents=True, exist_ok=True)
-    for rel in table:
-        os.replace(stage / rel, out_dir / rel)
+    for rel, meta in table.items():
+        _move_finished(stage / rel, out_dir / rel, meta)
     manifest = {
         "format": MAP_FORMAT, "version": VERSION, "software": f"vlm_vpr_ros {__version__}",
         "metric": METRIC, "descriptor": identity, "index": index,
@@ -376,6 +377,15 @@ def _build_into(staged: Any, source: DescriptorSource, identity: dict, state: di
     staged.commit(validate=lambda p: ReferenceMap.load(p, verify=False))
     log.info("built map %s from descriptors: %d references (%d skipped), %d submaps, %.1f s",
              staged.target, len(keep), len(skipped), len(entries), time.monotonic() - t0)
+
+
+def _move_finished(src: Path, dst: Path, meta: dict) -> None:
+    """Move a finished file into the staged map; idempotent: a run that failed after the move
+    (disk full at the manifest, a failed validation) left it there, and its rerun finds it."""
+    if not src.exists() and dst.is_file() and dst.stat().st_size == meta["bytes"] \
+            and content_matches(dst, meta):
+        return
+    os.replace(src, dst)
 
 
 def _pq_codebook(desc: _Rows, keep: np.ndarray, kinds: list[str], work: Path,

@@ -5,13 +5,16 @@ manifest last."""
 
 from __future__ import annotations
 
+import contextlib
+import hashlib
 import json
 import logging
+import re
 from pathlib import Path
 from typing import Any, Mapping
 
 from vlm_vpr_ros.errors import MapError
-from vlm_vpr_ros.files.atomic import atomic_write_json
+from vlm_vpr_ros.files.atomic import atomic_write_bytes, atomic_write_json
 from vlm_vpr_ros.maps.format import MANIFEST, checked_file, file_table
 
 log = logging.getLogger(__name__)
@@ -35,16 +38,46 @@ def load_document(ref_map: Any, key: str, what: str) -> Any | None:
 
 
 def save_document(ref_map: Any, key: str, name: str, doc: Mapping[str, Any], what: str) -> Path:
-    """Write ``name`` into the saved map, list it in ``files`` and under ``key`` (manifest
-    last); ``ref_map.manifest`` follows."""
+    """Write ``doc`` into the saved map, list it in ``files`` and under ``key``; the manifest
+    is replaced last (the commit point). ``ref_map.manifest`` follows.
+
+    A file the manifest lists is never rewritten in place (a kill between the two writes would
+    leave a map whose content check refuses it): a rewrite goes to a new, content-named file
+    (``calibration.<sha256[:12]>.json``), the one it replaces is listed in ``retired`` and kept
+    one more generation for readers of the previous manifest, like the files of a map edit
+    (:mod:`vlm_vpr_ros.maps.transaction`). The first write of a fresh map uses ``name``."""
     if ref_map.path is None:
         raise MapError(f"save the map before writing its {what}")
     path = Path(ref_map.path)
-    atomic_write_json(path / name, dict(doc))
     manifest = dict(ref_map.manifest)
     files = dict(manifest.get("files", {}))
-    files.update(file_table(path, [name]))
-    manifest["files"], manifest[key] = files, name
+    data = (json.dumps(dict(doc), indent=2) + "\n").encode("utf-8")
+    rel = name
+    if name in files or name in manifest.get("retired", []):
+        stem, dot, ext = name.rpartition(".")
+        rel = f"{stem}.{hashlib.sha256(data).hexdigest()[:12]}{dot}{ext}"
+    atomic_write_bytes(path / rel, data)
+    old = manifest.get(key)
+    files.update(file_table(path, [rel]))
+    retired = [r for r in manifest.get("retired", []) if r != rel]
+    stale: list[str] = []
+    if isinstance(old, str) and old != rel and old in files:
+        del files[old]
+        stale = [r for r in retired if _same_document(r, name) and r not in files]
+        retired = [r for r in retired if r not in stale] + [old]
+    manifest["files"], manifest[key] = files, rel
+    if retired or "retired" in manifest:
+        manifest["retired"] = retired
     atomic_write_json(path / MANIFEST, manifest)
     ref_map.manifest = manifest
-    return path / name
+    for r in stale:  # retired by the save before: two generations old now
+        with contextlib.suppress(FileNotFoundError):
+            (path / r).unlink()
+    return path / rel
+
+
+def _same_document(rel: str, name: str) -> bool:
+    """Whether ``rel`` is ``name`` or one of its content-named rewrites."""
+    stem, _, ext = name.rpartition(".")
+    return rel == name or re.fullmatch(re.escape(stem) + r"\.[0-9a-f]{12}\." + re.escape(ext),
+                                       rel) is not None

@@ -16,12 +16,11 @@ map as it was. One writer at a time: the map's writer lock (``PARENT/.MAP.lock``
 
 Maps may hold their reference images (teach maps built from a bag,
 :mod:`vlm_vpr_ros.maps.map_images`): adding to such a map copies the new images in; removing
-deletes them.
+retires them like the replaced submap files (deleted by the next edit).
 """
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import math
 import os
@@ -381,7 +380,7 @@ def remove_references(map_dir: str | os.PathLike[str], ids: Iterable[str],
             if stored:
                 for i in stored:
                     del index[i]
-                    tx.new["files"].pop(f"{IMAGES_DIR}/{i}", None)
+                    tx.retire(f"{IMAGES_DIR}/{i}")
                 write_image_index(tx, index, gen)
             edit_features(tx, ref_map, gen, rewritten, res.dropped)
             finish_manifest(tx.new, list(entries.values()), gen, "remove", len(drop), source)
@@ -389,10 +388,7 @@ def remove_references(map_dir: str | os.PathLike[str], ids: Iterable[str],
         except BaseException:
             tx.rollback()
             raise
-        recalibrate(path, store)
-        for i in stored:  # after the commit: the old manifest no longer needs them
-            with contextlib.suppress(FileNotFoundError):
-                (path / IMAGES_DIR / i).unlink()
+        recalibrate(path, store)  # the removed images are ``retired`` (the next edit deletes)
         res.n_references, res.n_submaps = tx.new["n_references"], tx.new["n_submaps"]
         log.info("%s", res.describe())
         return res

@@ -41,6 +41,8 @@ MANIFEST = "manifest.json"
 IDENTITY_KEYS = ("name", "dim", "release", "preprocessing")
 REQUIRED_KEYS = ("format", "version", "descriptor", "metric", "partition", "n_references",
                  "submaps", "files")
+#: manifest keys naming a JSON document of the map (:mod:`vlm_vpr_ros.maps.documents`)
+DOCUMENT_KEYS = ("calibration", "verification_calibration")
 #: files up to this size are checked whole (sha256) when a map is opened
 SMALL_FILE_BYTES = 256 * 1024
 #: larger files: the sha256 of this many 4 KiB pages (and the size) is their fingerprint
@@ -114,11 +116,33 @@ def check_structure(manifest: dict, mpath: Path) -> None:
     part = need(manifest["partition"], "partition", dict, "an object {method, params}")
     need(part.get("method"), "partition.method", str, "a string")
     need(manifest["n_references"], "n_references", int, "an integer")
+    need(manifest["descriptor"].get("name"), "descriptor.name", str, "a string")
     state = manifest.get("descriptor_state")
     if state is not None:
         check_map_relpath(mpath, "descriptor_state", state)
+    for key in DOCUMENT_KEYS:
+        if manifest.get(key) is not None:
+            check_map_relpath(mpath, key, manifest[key])
+    for k, rel in enumerate(need(manifest.get("retired", []), "retired", list,
+                                 "a list of file paths")):
+        check_map_relpath(mpath, f"retired[{k}]", rel)  # an edit deletes them
     if "index" in manifest:
         need(manifest["index"], "index", str, "a string")
+    if "index_params" in manifest:
+        params = need(manifest["index_params"], "index_params", dict,
+                      "an object {rerank_factor, ...}")
+        if "rerank_factor" in params and (need(params["rerank_factor"],
+                                               "index_params.rerank_factor", int,
+                                               "an integer") < 1):
+            raise _type_error(mpath, "index_params.rerank_factor", "an integer >= 1",
+                              params["rerank_factor"])
+    if "generation" in manifest and need(manifest["generation"], "generation", int,
+                                         "an integer") < 0:
+        raise _type_error(mpath, "generation", "an integer >= 0", manifest["generation"])
+    if manifest.get("source") is not None:
+        src = need(manifest["source"], "source", dict, "an object")
+        if "skipped" in src:
+            need(src["skipped"], "source.skipped", list, "a list")
     subs = need(manifest["submaps"], "submaps", list, "a list of submap entries")
     seen: set[str] = set()
     for k, entry in enumerate(subs):
@@ -135,6 +159,14 @@ def check_structure(manifest: dict, mpath: Path) -> None:
         if len(cen) != 2 or not all(isinstance(c, (int, float)) and not isinstance(c, bool)
                                     for c in cen):
             raise _type_error(mpath, f"{where}.centroid", "[lat, lon] numbers", cen)
+        for key in ("group", "kind"):
+            if key in entry:
+                need(entry[key], f"{where}.{key}", str, "a string")
+        if entry.get("recall") is not None:
+            rec = need(entry["recall"], f"{where}.recall", dict,
+                       "an object {recall_at_1, recall_at_50}")
+            for key in ("recall_at_1", "recall_at_50"):
+                need(rec.get(key), f"{where}.recall.{key}", (int, float), "a number")
         sfiles = need(entry.get("files"), f"{where}.files", dict,
                       "an object {index, coords, ids}")
         for key in ("index", "coords", "ids"):

@@ -43,7 +43,7 @@ from vlm_vpr_ros.errors import MapError
 from vlm_vpr_ros.files.atomic import (atomic_save_npy, atomic_save_npz, atomic_write_index,
                                       atomic_write_json)
 from vlm_vpr_ros.maps import indexes
-from vlm_vpr_ros.maps.format import (MANIFEST, MAP_FORMAT, METRIC, check_content,
+from vlm_vpr_ros.maps.format import (DOCUMENT_KEYS, MANIFEST, MAP_FORMAT, METRIC, check_content,
                                      check_ref_id, checked_file, content_error, content_matches,
                                      file_table, load_state, verify_files)
 from vlm_vpr_ros.maps.submap import submap_radius_km
@@ -111,6 +111,7 @@ def save_map(ref_map: Any, path: Path) -> dict:
             entry["recall"] = s.recall
         subs.append(entry)
     manifest = dict(ref_map.manifest)
+    manifest.pop("retired", None)  # files of the folder it was read from, not of this one
     kinds = sorted({s["kind"] for s in subs})
     manifest.update({
         "format": MAP_FORMAT, "version": VERSION, "software": f"vlm_vpr_ros {__version__}",
@@ -423,8 +424,8 @@ def open_submaps(path: Path, manifest: dict, verify: bool
     for s in subs:  # before the check: a change made during it is seen at the first search
         s.note_checked()
     rels = [r for e in manifest["submaps"] for r in e["files"].values()]
-    rels += [r for r in (manifest.get("descriptor_state"), "calibration.json")
-             if r and r in manifest["files"]]
+    rels += [r for r in (manifest.get(k) for k in ("descriptor_state",) + DOCUMENT_KEYS)
+             if isinstance(r, str) and r in manifest["files"]]
     if verify:
         verify_files(path, manifest)
     else:

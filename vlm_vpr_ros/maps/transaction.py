@@ -37,8 +37,8 @@ def edit_lock(map_dir: Path, what: str = "a map edit") -> Iterator[None]:
         targets.append(real)
     held: list[WriterLock] = []
     try:
-        for t in targets:
-            held.append(WriterLock(t, what, inside_ok=True).acquire())
+        for k, t in enumerate(targets):  # one folder: its inside lock once
+            held.append(WriterLock(t, what, inside_ok=k == 0).acquire())
     except OutputError as exc:
         for lock in held:
             lock.release()
@@ -63,6 +63,8 @@ class Transaction:
         self.old = manifest
         self.new = copy.deepcopy(manifest)
         self.written: list[str] = []
+        #: files the manifest does not list (stored images) that this edit replaces
+        self.retiring: list[str] = []
         #: the folder this edit opened: every write checks that ``path`` still names it
         self.folder = _folder_id(path)
 
@@ -77,6 +79,11 @@ class Transaction:
         if not same:
             raise MapError(f"{self.path} was moved or replaced while this edit ran; the edit "
                            "is abandoned (nothing was committed): run it again")
+
+    def retire(self, rel: str) -> None:
+        """A file the manifest does not list (a stored image) that the committed map no longer
+        uses: kept one generation like the replaced files, then deleted."""
+        self.retiring.append(rel)
 
     def record(self, rel: str) -> None:
         self.written.append(rel)
@@ -118,8 +125,10 @@ class Transaction:
         for rel in list(listed):
             if not (self.path / rel).is_file():
                 raise MapError(f"internal: {rel} listed but not written")
-        gone = sorted(set(self.old["files"]) - set(listed))
-        older = [r for r in self.old.get("retired", []) if r not in listed]
+        keep = set(listed) | set(self.written)  # an image written again is not retired
+        gone = sorted((set(self.old["files"]) - set(listed))
+                      | {r for r in self.retiring if r not in keep})
+        older = [r for r in self.old.get("retired", []) if r not in keep]
         self.new["retired"] = gone
         atomic_write_json(self.path / MANIFEST, self.new)
         for rel in older:
