@@ -151,6 +151,31 @@ def test_v1_maps_still_load_and_upgrade_to_v2(tmp_path, capsys):
     assert main(["map", "upgrade", str(tmp_path / "v1"), "--out", str(tmp_path / "v2")]) == 2
 
 
+def test_upgrade_to_another_index_keeps_calibrations_and_local_features(demo_map, demo_data,
+                                                                        tmp_path, capsys):
+    """map upgrade rebuilds the indexes of the same submaps: the radius calibration, the
+    verification calibration and the local-feature store come along (before, the new map
+    answered unverified and uncalibrated), and a query gets the same verified answer."""
+    from vlm_vpr_ros.evaluation.demo import make_query
+    from vlm_vpr_ros.files.images import load_image
+    from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
+
+    out = tmp_path / "fp16"
+    assert main(["map", "upgrade", str(demo_map), "--out", str(out), "--index", "fp16"]) == 0
+    assert "other files carried" in capsys.readouterr().out
+    old, new = LocalizationPipeline.open(demo_map), LocalizationPipeline.open(out)
+    assert {s.kind for s in new.map.submaps} == {"fp16"}
+    assert new.localizer.calibration_source == old.localizer.calibration_source
+    assert new.verifier.enabled and new.verifier.calibration_source == \
+        old.verifier.calibration_source != "none"
+    r = next(csv.DictReader(open(demo_data / "coords.csv")))
+    q = make_query(load_image(demo_data / "images" / r["file"]), np.random.default_rng(0))
+    a, b = old.localize_image(q), new.localize_image(q)
+    assert (b.ref_id, b.status, b.inliers) == (a.ref_id, a.status, a.inliers)
+    assert b.status == "fix" and b.p_correct == a.p_correct
+    ReferenceMap.load(out, verify=True)  # every carried file is listed and checks out
+
+
 def test_build_from_single_npy_and_localize_query_descriptors(ref512, tmp_path, monkeypatch,
                                                               caplog):
     d, x, pos, ids = ref512

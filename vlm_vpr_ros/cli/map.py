@@ -236,6 +236,7 @@ def cmd_upgrade(args: argparse.Namespace) -> int:
     from vlm_vpr_ros.files.lock import WriterLock
     from vlm_vpr_ros.files.outputs import StagedOutput, check_not_inside
     from vlm_vpr_ros.maps.build_descriptors import convert_map
+    from vlm_vpr_ros.maps.documents import carry_companions
     from vlm_vpr_ros.maps.reference_map import ReferenceMap
 
     out = Path(args.out)
@@ -250,7 +251,10 @@ def cmd_upgrade(args: argparse.Namespace) -> int:
                           args.rerank_factor or old.rerank_factor)
         with StagedOutput(out, "map") as stage:  # the new map's lock, staged then swapped in
             new.save(stage.path)
+            # same submaps, same rows: calibrations, local features and images stay valid
+            carried = carry_companions(Path(args.map), old.manifest, stage.path)
             stage.commit(validate=ReferenceMap.load)
     print(f"map {args.out}: v2, {new.n_references} references, {len(new.submaps)} submaps, "
-          f"index {kind} (from {args.map}, format v{old.manifest['version']})")
+          f"index {kind} (from {args.map}, format v{old.manifest['version']}); "
+          f"{len(carried)} other files carried (calibrations, local features, images)")
     return 0

@@ -81,3 +81,30 @@ def _same_document(rel: str, name: str) -> bool:
     stem, _, ext = name.rpartition(".")
     return rel == name or re.fullmatch(re.escape(stem) + r"\.[0-9a-f]{12}\." + re.escape(ext),
                                        rel) is not None
+
+
+def carry_companions(src: Path, src_manifest: Mapping[str, Any], dst: Path) -> list[str]:
+    """Copy into the saved map ``dst`` the files of the map ``src`` that are not its submaps'
+    indexes (the calibration documents, the local-feature store, the image index and the
+    images), and list them in ``dst``'s manifest: ``map upgrade`` writes new indexes for the
+    same submaps (same ids, same rows), so these stay valid. Returns the files carried."""
+    import shutil
+
+    man = json.loads((dst / MANIFEST).read_text(encoding="utf-8"))
+    files = src_manifest.get("files")
+    listed = list(files) if isinstance(files, dict) else []  # v1 manifests list per submap
+    listed += [src_manifest[k] for k in ("calibration", "verification_calibration")
+               if isinstance(src_manifest.get(k), str) and src_manifest[k] not in listed]
+    indexes = {rel for s in src_manifest.get("submaps", [])
+               for rel in ((s.get("files") or {}).values() if isinstance(s, dict) else ())}
+    carried = [rel for rel in listed if rel not in indexes and rel not in man["files"]
+               and (src / rel).is_file()]
+    for rel in carried:
+        (dst / rel).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(src / rel, dst / rel)
+    images = (src_manifest.get("images") or {}).get("folder")
+    if images and (src / images).is_dir() and not (dst / images).exists():
+        shutil.copytree(src / images, dst / images)  # listed in their own index (carried)
+    man["files"].update(file_table(dst, carried))
+    atomic_write_json(dst / MANIFEST, man)
+    return carried
