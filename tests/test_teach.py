@@ -145,6 +145,13 @@ def test_build_map_from_bag_cli(raw_bag, demo_places, tmp_path, capsys, monkeypa
     monkeypatch.setattr(os, "replace", real)
     assert (out / "manifest.json").read_bytes() == before and verify_images(out) == 16
     assert sorted(p.name for p in tmp_path.iterdir()) == ["teach_map"]
+    # map upgrade to another index keeps the stored images (and their index) and features
+    up = tmp_path / "teach_fp16"
+    assert main(["map", "upgrade", str(out), "--out", str(up), "--index", "fp16"]) == 0
+    assert verify_images(up) == 16
+    ref_id = m.all_ids()[3]
+    hyp = LocalizationPipeline.open(up).localize_image(load_image(up / "images" / ref_id))
+    assert hyp.ref_id == ref_id and hyp.verification == "verified"
 
 
 def test_sqlite3_teach_bag(raw_bag, tmp_path):

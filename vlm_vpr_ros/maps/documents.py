@@ -99,12 +99,12 @@ def carry_companions(src: Path, src_manifest: Mapping[str, Any], dst: Path) -> l
                for rel in ((s.get("files") or {}).values() if isinstance(s, dict) else ())}
     carried = [rel for rel in listed if rel not in indexes and rel not in man["files"]
                and (src / rel).is_file()]
+    images = (src_manifest.get("images") or {}).get("folder")
+    if images and (src / images).is_dir():  # the images, listed in their own index (carried)
+        shutil.copytree(src / images, dst / images, dirs_exist_ok=True)
     for rel in carried:
         (dst / rel).parent.mkdir(parents=True, exist_ok=True)
         shutil.copy2(src / rel, dst / rel)
-    images = (src_manifest.get("images") or {}).get("folder")
-    if images and (src / images).is_dir() and not (dst / images).exists():
-        shutil.copytree(src / images, dst / images)  # listed in their own index (carried)
     man["files"].update(file_table(dst, carried))
     atomic_write_json(dst / MANIFEST, man)
     return carried
