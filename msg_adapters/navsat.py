@@ -31,9 +31,10 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
-from vlm_vpr_ros.localization.verification.status import (FALLBACK, K68, K95, MAX_SIGMA_M,
+from vlm_vpr_ros.localization.verification.status import (K68, K95, MAX_SIGMA_M,
                                                           StatusPolicy, finite_sigma,
-                                                          horizontal_sigma, stamp_status)
+                                                          horizontal_sigma, is_precise_fix,
+                                                          stamp_status)
 from vlm_vpr_ros.types import Hypothesis
 
 __all__ = ["COVARIANCE_TYPE_APPROXIMATED", "FixFields", "FixPolicy", "K68", "K95",
@@ -76,7 +77,7 @@ def fix_fields(hyp: Hypothesis, policy: FixPolicy | None = None) -> FixFields:
         hyp = stamp_status(dataclasses.replace(hyp), policy.status)
     sigma = horizontal_sigma(hyp)
     fix = hyp.status == "fix"
-    precise = fix and not hyp.status_reason.startswith(FALLBACK)
+    precise = is_precise_fix(hyp)
     var = sigma * sigma
     var_z = finite_sigma(policy.altitude_sigma_m) ** 2
     cov = (var, 0.0, 0.0, 0.0, var, 0.0, 0.0, 0.0, var_z)

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from vlm_vpr_ros.errors import ConfigError
-from vlm_vpr_ros.localization.verification.status import FALLBACK, horizontal_sigma
+from vlm_vpr_ros.localization.verification.status import horizontal_sigma, is_precise_fix
 
 FRAME_POLICIES = ("latest", "next")
 
@@ -98,8 +98,7 @@ def outcome_summary(outcome: Any, waited_s: float,
     p = "" if math.isnan(h.p_correct) else f"p_correct {h.p_correct:.3f}, "
     took = outcome.finished - outcome.started
     what = "relocalized frame" if outcome.trigger == "relocalize" else "fix for frame"
-    precise = h.status == "fix" and not h.status_reason.startswith(FALLBACK)
-    return precise, (f"{what} {frame.key}: lat {h.lat:.6f}, lon {h.lon:.6f}, {status}, "
-                  f"sigma {horizontal_sigma(h):.0f} m, {p}reference {h.ref_id}, "
-                  f"submap {h.submap}, {prior}, {len(h.candidates)} candidates, "
-                  f"{took:.2f} s{flag}")
+    return is_precise_fix(h), (f"{what} {frame.key}: lat {h.lat:.6f}, lon {h.lon:.6f}, "
+                               f"{status}, sigma {horizontal_sigma(h):.0f} m, {p}reference "
+                               f"{h.ref_id}, submap {h.submap}, {prior}, "
+                               f"{len(h.candidates)} candidates, {took:.2f} s{flag}")

@@ -105,6 +105,12 @@ def fix_status(hyp: Hypothesis, policy: StatusPolicy | None = None) -> tuple[boo
     return True, ""
 
 
+def is_precise_fix(hyp: Hypothesis) -> bool:
+    """A fix that passed the status rule (not one published by ``fallback_status: fix``): the
+    answers that get a pose and a successful relocalize answer."""
+    return hyp.status == "fix" and not hyp.status_reason.startswith(FALLBACK)
+
+
 def stamp_status(hyp: Hypothesis, policy: StatusPolicy) -> Hypothesis:
     """Stamp ``status`` / ``status_reason`` (and the ``prior_resolved`` flag) on ``hyp`` under
     ``policy``, the fallback included (module docstring): the one decision every output uses."""
