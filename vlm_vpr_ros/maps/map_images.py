@@ -12,7 +12,7 @@ from typing import Any, Mapping, Sequence
 
 from vlm_vpr_ros.errors import DataError, MapError
 from vlm_vpr_ros.files.atomic import atomic_path, atomic_write_json, file_sha256
-from vlm_vpr_ros.maps.format import MANIFEST
+from vlm_vpr_ros.maps.format import MANIFEST, bad_ref_id
 from vlm_vpr_ros.maps.reference_map import ReferenceMap
 from vlm_vpr_ros.maps.transaction import Transaction, edit_lock
 
@@ -46,11 +46,11 @@ def image_index(map_dir: Path, manifest: Mapping[str, Any]) -> dict[str, dict]:
 
 
 def safe_rel(ref_id: str) -> Path:
-    p = Path(ref_id)
-    if p.is_absolute() or ".." in p.parts or not p.parts:
+    """``ref_id`` as a path inside the images folder (the rules of every stored id)."""
+    if bad_ref_id(ref_id):
         raise DataError(f"reference id {ref_id!r} is not a relative path inside the images "
                         "folder; it cannot be stored in the map")
-    return p
+    return Path(ref_id)
 
 
 def store_images(tx: Transaction, src_root: Path, ids: Sequence[str], index: dict,
