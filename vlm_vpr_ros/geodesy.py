@@ -15,6 +15,12 @@ THRESHOLDS_KM: tuple[float, ...] = (1.0, 25.0, 200.0, 750.0, 2500.0)
 MAX_DISTANCE_KM = math.pi * EARTH_RADIUS_KM
 
 
+def valid_latlon(lat: float, lon: float) -> bool:
+    """True for finite WGS-84 degrees in range."""
+    return (math.isfinite(lat) and math.isfinite(lon)
+            and -90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0)
+
+
 def haversine_km(lat1, lon1, lat2, lon2) -> np.ndarray | float:
     """Great-circle distance(s) in km; accepts scalars or broadcastable arrays (degrees)."""
     lat1, lon1, lat2, lon2 = (np.radians(np.asarray(v, dtype=np.float64))

@@ -32,12 +32,11 @@ from vlm_vpr_ros.errors import ConfigError, DescriptorError
 from vlm_vpr_ros.localization.fusion.calibration import load_calibration
 from vlm_vpr_ros.localization.fusion.error_model import ErrorModel, load_error_models
 from vlm_vpr_ros.localization.fusion.posterior import fuse
-from vlm_vpr_ros.geodesy import MAX_DISTANCE_KM, haversine_km
+from vlm_vpr_ros.geodesy import MAX_DISTANCE_KM, haversine_km, valid_latlon
 from vlm_vpr_ros.maps.reference_map import ReferenceMap
 from vlm_vpr_ros.maps.submap import submap_radius_km
 from vlm_vpr_ros.maps.partition import country_codes, nearest_centroids
 from vlm_vpr_ros.priors.base import Prior, PriorResult
-from vlm_vpr_ros.priors.simple import valid_latlon
 from vlm_vpr_ros.types import Candidate, Hypothesis
 
 log = logging.getLogger(__name__)

@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 from typing import Any, Iterator
 
 from vlm_vpr_ros.config import choose
+from vlm_vpr_ros.geodesy import valid_latlon
 
 PARSER_MODES = ("strict", "robust", "paper")
 MAX_TEXT_CHARS = 100_000  # longer answers are truncated before parsing (bounded work)
@@ -99,11 +100,6 @@ class ParsedAnswer:
         return self.lat is not None and self.lon is not None
 
 
-def in_range(lat: float, lon: float) -> bool:
-    return (math.isfinite(lat) and math.isfinite(lon)
-            and -90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0)
-
-
 def parse_answer(text: Any, mode: str = "robust") -> ParsedAnswer:
     """Parse a VLM answer with ``mode`` (strict, robust, paper). Never raises on ``text``;
     an unknown ``mode`` is a ConfigError listing the choices."""
@@ -115,7 +111,7 @@ def parse_answer(text: Any, mode: str = "robust") -> ParsedAnswer:
         return ParsedAnswer(None, None, "empty")
     found_out_of_range = False
     for lat, lon, method, info in func(text):
-        if in_range(lat, lon):
+        if valid_latlon(lat, lon):
             return ParsedAnswer(float(lat), float(lon), "", method, info,
                                 suspicious_answer(text, lat, lon))
         found_out_of_range = True
@@ -329,7 +325,7 @@ def parse_structured(text: Any) -> ParsedAnswer:
     lat, lon = _scalar(hit[0], "lat"), _scalar(hit[1], "lon")
     if lat is None or lon is None or isinstance(hit[0], str) or isinstance(hit[1], str):
         return ParsedAnswer(None, None, "no_coordinates")
-    if not in_range(lat, lon):
+    if not valid_latlon(lat, lon):
         return ParsedAnswer(None, None, "out_of_range")
     unc = obj.get("uncertainty_km")
     unc = (float(unc) if isinstance(unc, (int, float)) and not isinstance(unc, bool)

@@ -7,15 +7,10 @@ import math
 import os
 
 from vlm_vpr_ros.errors import PriorError
+from vlm_vpr_ros.geodesy import valid_latlon
 from vlm_vpr_ros.priors.base import KeyedTable, Prior, PriorProvider, PriorQuery, PriorResult
 
 log = logging.getLogger(__name__)
-
-
-def valid_latlon(lat: float, lon: float) -> bool:
-    """True for finite WGS-84 degrees in range."""
-    return (math.isfinite(lat) and math.isfinite(lon)
-            and -90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0)
 
 
 class NoPrior(PriorProvider):
