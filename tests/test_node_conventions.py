@@ -160,6 +160,9 @@ def test_lifecycle_node_through_its_services(demo_map, tmp_path, rgb):
         assert client.image_pub.get_subscription_count() == 0  # no intake while inactive
         inactive = client.call(Trigger, "relocalize", Trigger.Request())
         assert not inactive.success and "not active" in inactive.message
+        reloaded = client.call(Trigger, "map_reload", Trigger.Request())  # for the activate
+        assert reloaded.success and "71 references (used from the next activate)" in \
+            reloaded.message, reloaded.message
 
         assert change(Transition.TRANSITION_ACTIVATE) and state() == "active"
         assert client.wait_subscribed(20.0), node.log()

@@ -22,16 +22,15 @@ from sensor_msgs.msg import CompressedImage, Image
 from std_srvs.srv import Trigger
 
 from msg_adapters.image import encoded_bytes, message_to_rgb, stamp_ns
-from vlm_vpr_ros.errors import ConfigError, MapError, VlmVprError
+from vlm_vpr_ros.errors import ConfigError, MapError
 from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
 from vlm_vpr_ros.priors import create_prior_provider
-from vlm_vpr_ros.redact import redact
 from vlm_vpr_ros.ros.outputs import Outputs, fix_policy
 from vlm_vpr_ros.ros.parameters import _Parameters
 from vlm_vpr_ros.runtime.params import NodeConfig
 from vlm_vpr_ros.runtime.stats import RuntimeStats, Throttle
 from vlm_vpr_ros.runtime.worker import (Frame, QueryOutcome, QueryRuntime, RelocalizeKind,
-                                        RuntimeConfig, outcome_summary)
+                                        RuntimeConfig, outcome_summary, reload_pipeline)
 
 #: the relocalize services: std_srvs/Trigger has no fields, so one service per kind of request
 RELOCALIZE_SERVICES = {
@@ -222,20 +221,15 @@ class _Wiring(_Parameters):
             response.success, response.message = runtime.reload_map()
             self.pipeline = runtime.pipeline
             return response
-        try:
-            if self.pipeline is None:
-                raise ConfigError("no map loaded: configure first")
-            self.pipeline = self.pipeline.reloaded()
-            response.success, response.message = True, (
-                f"map {self.cfg.map_dir} reloaded: {self.pipeline.map.n_references} "
-                "references (used from the next activate)")
-        except (VlmVprError, OSError) as exc:
-            response.success, response.message = False, redact(f"map reload failed: {exc}")
-        except Exception as exc:  # noqa: BLE001 - a service call must not stop the node
-            self.get_logger().error(redact(f"map reload failed: {type(exc).__name__}: {exc}"))
-            response.success = False
-            response.message = redact(f"map reload failed (internal error {type(exc).__name__}:"
-                                      f" {exc})")
+        new, why = (reload_pipeline(self.pipeline) if self.pipeline is not None
+                    else (None, "no map loaded: configure first"))
+        if new is None:
+            response.success, response.message = False, f"map reload failed: {why}"
+            return response
+        self.pipeline = new
+        response.success, response.message = True, (
+            f"map {self.cfg.map_dir} reloaded: {new.map.n_references} references (used from "
+            "the next activate)")
         return response
 
     # -- output -----

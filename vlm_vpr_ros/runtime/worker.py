@@ -50,7 +50,20 @@ MAX_WAITERS = 32
 #: LocalizerConfig fields that runtime tuning may change (read per query by the localizer)
 TUNABLE_LOCALIZER = ("top_p", "fusion", "use_submaps", "rerank", "n_submaps")
 __all__ = ["Frame", "MAX_WAITERS", "QueryOutcome", "QueryRuntime", "RelocalizeKind",
-           "RelocalizeTicket", "RuntimeConfig", "outcome_summary"]
+           "RelocalizeTicket", "RuntimeConfig", "outcome_summary", "reload_pipeline"]
+
+
+def reload_pipeline(pipe: LocalizationPipeline) -> tuple[LocalizationPipeline | None, str]:
+    """``pipe``'s map re-read from disk, or (None, why, redacted) on any failure: the
+    ``map_reload`` service answers it and the node keeps its current map."""
+    try:
+        return pipe.reloaded(), ""
+    except (VlmVprError, OSError) as exc:
+        log.error("map reload failed, keeping the current map: %s", exc)
+        return None, redact(exc)
+    except Exception as exc:  # noqa: BLE001 - a service call must not stop the node
+        log.exception("map reload failed, keeping the current map")
+        return None, redact(f"internal error {type(exc).__name__}: {exc}")
 
 
 @dataclass(frozen=True)
@@ -194,17 +207,10 @@ class QueryRuntime:
         with self._reload_lock:  # one reload at a time; queries keep running meanwhile
             old = self.pipeline
             t0 = time.monotonic()
-            try:
-                new = old.reloaded()
-            except (VlmVprError, OSError) as exc:
+            new, why = reload_pipeline(old)
+            if new is None:
                 self.stats.count("map_reload_failures")
-                log.error("map reload failed, keeping the current map: %s", exc)
-                return False, redact(f"map reload failed, the current map stays in use: {exc}")
-            except Exception as exc:  # noqa: BLE001 - a service call must not stop the node
-                self.stats.count("map_reload_failures")
-                log.exception("map reload failed, keeping the current map")
-                return False, redact(f"map reload failed (internal error {type(exc).__name__}:"
-                                     f" {exc}), the current map stays in use")
+                return False, f"map reload failed, the current map stays in use: {why}"
             with self._cond:
                 self.pipeline = new
             self.stats.count("map_reloads")
