@@ -10,6 +10,7 @@ import hashlib
 import json
 import logging
 import re
+import shutil
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -88,8 +89,6 @@ def carry_companions(src: Path, src_manifest: Mapping[str, Any], dst: Path) -> l
     indexes (the calibration documents, the local-feature store, the image index and the
     images), and list them in ``dst``'s manifest: ``map upgrade`` writes new indexes for the
     same submaps (same ids, same rows), so these stay valid. Returns the files carried."""
-    import shutil
-
     man = json.loads((dst / MANIFEST).read_text(encoding="utf-8"))
     files = src_manifest.get("files")
     listed = list(files) if isinstance(files, dict) else []  # v1 manifests list per submap
