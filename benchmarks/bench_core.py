@@ -39,10 +39,10 @@ from vlm_vpr_ros.evaluation.demo import DEMO_DATA, make_query  # noqa: E402
 from vlm_vpr_ros.files.images import load_image  # noqa: E402
 from vlm_vpr_ros.localization.localizer import Localizer, LocalizerConfig  # noqa: E402
 from vlm_vpr_ros.localization.pipeline import LocalizationPipeline  # noqa: E402
-from vlm_vpr_ros.maps.assemble import assemble_map  # noqa: E402
-from vlm_vpr_ros.maps.build_images import build_map  # noqa: E402
+from vlm_vpr_ros.mapping.assemble import assemble_map  # noqa: E402
+from vlm_vpr_ros.mapping.build_images import build_map  # noqa: E402
 from vlm_vpr_ros.maps.reference_map import ReferenceMap  # noqa: E402
-from vlm_vpr_ros.priors.base import Prior, PriorResult  # noqa: E402
+from vlm_vpr_ros.priors.provider import Prior, PriorResult  # noqa: E402
 
 MP16 = REPO.parent / "shared" / "data" / "mp16_coords" / "coordinates_100K.csv"
 DEFAULT_DESCRIPTOR = "vlad_rootsift"  # build-map's default

@@ -29,10 +29,10 @@ sys.path.insert(0, str(REPO))
 from vlm_vpr_ros.localization.fusion.calibration import _sample_prior  # noqa: E402
 from vlm_vpr_ros.localization.fusion.error_model import load_error_models  # noqa: E402
 from vlm_vpr_ros.localization.localizer import Localizer, LocalizerConfig  # noqa: E402
-from vlm_vpr_ros.maps.assemble import assemble_map
-from vlm_vpr_ros.maps.build_images import write_map_calibration  # noqa: E402
+from vlm_vpr_ros.mapping.assemble import assemble_map
+from vlm_vpr_ros.mapping.build_images import write_map_calibration  # noqa: E402
 from vlm_vpr_ros.maps.reference_map import ReferenceMap  # noqa: E402
-from vlm_vpr_ros.priors.base import Prior, PriorResult  # noqa: E402
+from vlm_vpr_ros.priors.provider import Prior, PriorResult  # noqa: E402
 
 MP16 = REPO.parent / "shared" / "data" / "mp16_coords" / "coordinates_100K.csv"
 

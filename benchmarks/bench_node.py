@@ -37,7 +37,7 @@ from chat_server import ChatServer  # noqa: E402
 from node_harness import GraphClient, NodeProcess, domain_id, image_msg, stamp_of  # noqa: E402
 from vlm_vpr_ros.evaluation.demo import DEMO_DATA  # noqa: E402
 from vlm_vpr_ros.files.images import load_image  # noqa: E402
-from vlm_vpr_ros.maps.build_images import build_map  # noqa: E402
+from vlm_vpr_ros.mapping.build_images import build_map  # noqa: E402
 
 QUERY = "546314506564628.jpg"
 TRUTH = (39.55910238557, 8.8888751944543)

@@ -154,7 +154,7 @@ def main() -> None:
         publisher(args)
         return
     from vlm_vpr_ros.evaluation.demo import DEMO_DATA
-    from vlm_vpr_ros.maps.build_images import build_map
+    from vlm_vpr_ros.mapping.build_images import build_map
 
     with tempfile.TemporaryDirectory() as tmp_name:
         tmp = Path(tmp_name)

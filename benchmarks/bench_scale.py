@@ -173,7 +173,7 @@ def child(map_dir: str, work: str, n_loop: int, n_global: int) -> None:
     t_start = time.perf_counter()
     from vlm_vpr_ros.localization.localizer import Localizer, LocalizerConfig
     from vlm_vpr_ros.maps.reference_map import ReferenceMap
-    from vlm_vpr_ros.priors.base import Prior, PriorResult
+    from vlm_vpr_ros.priors.provider import Prior, PriorResult
 
     m = ReferenceMap.load(map_dir)
     # the paper's search (the one submap of the prior) isolates the per-submap cost; the
@@ -243,7 +243,7 @@ def exact_top(map_dir: Path, work: Path, n_recall: int) -> None:
     """Exact float32 top-50 in each recall query's submap, from the source descriptors."""
     from vlm_vpr_ros.localization.localizer import Localizer, LocalizerConfig
     from vlm_vpr_ros.maps.reference_map import ReferenceMap
-    from vlm_vpr_ros.priors.base import Prior
+    from vlm_vpr_ros.priors.provider import Prior
 
     m = ReferenceMap.load(map_dir)
     loc = Localizer(m, LocalizerConfig(fusion="paper"))

@@ -38,7 +38,7 @@ sys.path.insert(0, str(REPO))
 
 from vlm_vpr_ros.files.images import load_image  # noqa: E402
 from vlm_vpr_ros.localization.pipeline import LocalizationPipeline  # noqa: E402
-from vlm_vpr_ros.maps.build_images import build_map, read_coords_csv  # noqa: E402
+from vlm_vpr_ros.mapping.build_images import build_map, read_coords_csv  # noqa: E402
 
 SHARED = Path(os.environ.get("VLM_VPR_SHARED", REPO.parent / "shared"))
 

@@ -37,9 +37,10 @@ class Stage:
 #: a query's path, from the camera frame to the published fix (the node and the batch tools)
 QUERY = (
     Stage("msg_adapters.image:message_to_rgb", "camera frame\n(Image / CompressedImage) → RGB"),
-    Stage("vlm_vpr_ros.priors.base:PriorProvider.request",
+    Stage("vlm_vpr_ros.priors.provider:PriorProvider.request",
           "VLM prior, asynchronous\n(never blocks)"),
-    Stage("vlm_vpr_ros.descriptors.base:GlobalDescriptor.describe_one", "global VPR descriptor"),
+    Stage("vlm_vpr_ros.descriptors.global_descriptor:GlobalDescriptor.describe_one",
+          "global VPR descriptor"),
     Stage("vlm_vpr_ros.localization.localizer:Localizer.select_submaps",
           "submaps in the prior's\nconfidence region"),
     Stage("vlm_vpr_ros.localization.localizer:Localizer.search",
@@ -55,17 +56,17 @@ QUERY = (
 )
 #: a map's path, from geotagged images to the folder the node opens
 BUILD = (
-    Stage("vlm_vpr_ros.maps.build_images:build_map", "images + CSV (file, lat, lon)"),
-    Stage("vlm_vpr_ros.descriptors.base:GlobalDescriptor.describe",
+    Stage("vlm_vpr_ros.mapping.build_images:build_map", "images + CSV (file, lat, lon)"),
+    Stage("vlm_vpr_ros.descriptors.global_descriptor:GlobalDescriptor.describe",
           "descriptors\n(fitted first if needed)"),
     Stage("vlm_vpr_ros.maps.partition:make_partition", "submaps: country\nor K-means"),
     Stage("vlm_vpr_ros.maps.indexes:make_index", "one FAISS index\nper submap"),
     Stage("vlm_vpr_ros.maps.store:save_map", "map folder (v2 manifest,\natomic writes)"),
     Stage("vlm_vpr_ros.localization.fusion.calibration:calibrate_references",
           "leave-one-out calibration\n(calibration.json)"),
-    Stage("vlm_vpr_ros.localization.verification.build:store_features",
+    Stage("vlm_vpr_ros.mapping.local_features:store_features",
           "local features stored\nper submap"),
-    Stage("vlm_vpr_ros.localization.verification.build:calibrate_map",
+    Stage("vlm_vpr_ros.mapping.local_features:calibrate_map",
           "leave-one-out p_correct\n(verification.json)"),
 )
 

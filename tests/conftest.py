@@ -29,7 +29,7 @@ def shared_dir() -> Path:
 @pytest.fixture(scope="session")
 def demo_map(tmp_path_factory, demo_data) -> Path:
     """A map of the 71 shipped demo images: vlad_rootsift_fast, kmeans partition (K=8)."""
-    from vlm_vpr_ros.maps.build_images import build_map
+    from vlm_vpr_ros.mapping.build_images import build_map
 
     out = tmp_path_factory.mktemp("demo_map") / "map"
     build_map(demo_data / "images", demo_data / "coords.csv", out,
@@ -57,7 +57,7 @@ def image(demo_data):
 @pytest.fixture(scope="session")
 def demo_country_map(tmp_path_factory, demo_data) -> Path:
     """The same images with one submap per country."""
-    from vlm_vpr_ros.maps.build_images import build_map
+    from vlm_vpr_ros.mapping.build_images import build_map
 
     out = tmp_path_factory.mktemp("demo_country_map") / "map"
     build_map(demo_data / "images", demo_data / "coords.csv", out,
@@ -69,7 +69,7 @@ def demo_country_map(tmp_path_factory, demo_data) -> Path:
 def demo_half_map(tmp_path_factory, demo_data) -> tuple[list, Path]:
     """(all coords rows, map of the first 36 demo images): vlad_rootsift_fast at 320 px,
     K=6. Tests that edit it copy it first (map add/remove, map_reload)."""
-    from vlm_vpr_ros.maps.build_images import build_map, read_coords_csv
+    from vlm_vpr_ros.mapping.build_images import build_map, read_coords_csv
 
     rows = read_coords_csv(demo_data / "coords.csv")
     work = tmp_path_factory.mktemp("demo_half")

@@ -12,7 +12,7 @@ from vlm_vpr_ros.errors import DataError
 from vlm_vpr_ros.evaluation.metrics import errors_km, summarize
 from vlm_vpr_ros.geodesy import haversine_km
 from vlm_vpr_ros.maps.reference_map import ReferenceMap
-from vlm_vpr_ros.priors.base import Prior, PriorResult
+from vlm_vpr_ros.priors.provider import Prior, PriorResult
 from vlm_vpr_ros.priors.simple import read_prior_csv
 
 TOP_PS = (1, 5, 25, 100)

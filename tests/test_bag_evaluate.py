@@ -116,7 +116,7 @@ def _custom_bag(path: Path, frames: list[tuple[str, np.ndarray]], gt_offset_ns: 
 
 def test_unsupported_encoding_keeps_other_frames(pipe, demo_data, tmp_path):
     from vlm_vpr_ros.files.images import load_image
-    from vlm_vpr_ros.maps.build_images import read_coords_csv
+    from vlm_vpr_ros.mapping.build_images import read_coords_csv
 
     rows = read_coords_csv(demo_data / "coords.csv")[:4]
     imgs = [load_image(demo_data / "images" / f) for f, _, _ in rows]
@@ -184,7 +184,7 @@ def test_cli_json_only_and_max_frames(cbag, demo_map, demo_data, tmp_path, capsy
 
 
 def test_run_bag_demo(demo_map, demo_data, queries, tmp_path):
-    from vlm_vpr_ros.bags.demo import run_bag_demo
+    from vlm_vpr_ros.bags.bag_demo import run_bag_demo
 
     info = run_bag_demo(tmp_path / "demo", demo_map, demo_data / "images", queries,
                         demo_data / "priors_osv5m_baseline.csv")

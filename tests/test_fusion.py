@@ -17,10 +17,10 @@ from vlm_vpr_ros.localization.fusion.error_model import (DEFAULT_ERROR_MODEL, Er
 from vlm_vpr_ros.localization.fusion.posterior import fuse
 from vlm_vpr_ros.geodesy import EARTH_RADIUS_KM, MAX_DISTANCE_KM, haversine_km
 from vlm_vpr_ros.localization.localizer import Localizer, LocalizerConfig
-from vlm_vpr_ros.maps.assemble import assemble_map
-from vlm_vpr_ros.maps.build_images import write_map_calibration
+from vlm_vpr_ros.mapping.assemble import assemble_map
+from vlm_vpr_ros.mapping.build_images import write_map_calibration
 from vlm_vpr_ros.maps.reference_map import ReferenceMap
-from vlm_vpr_ros.priors.base import Prior, PriorResult
+from vlm_vpr_ros.priors.provider import Prior, PriorResult
 
 MODEL = ErrorModel((1.0, 20.0, 800.0), (0.3, 0.3, 0.2), 0.2, "test")
 

@@ -11,11 +11,11 @@ from two_search import (TwoSearchLocalizer, assert_same_answers, search_submaps_
                         two_searches_v1)
 
 from vlm_vpr_ros.localization.localizer import Localizer, LocalizerConfig
-from vlm_vpr_ros.maps.assemble import assemble_map
+from vlm_vpr_ros.mapping.assemble import assemble_map
 from vlm_vpr_ros.maps.indexes import make_index
 from vlm_vpr_ros.maps.reference_map import ReferenceMap
 from vlm_vpr_ros.maps.submap import Submap
-from vlm_vpr_ros.priors.base import Prior, PriorResult
+from vlm_vpr_ros.priors.provider import Prior, PriorResult
 
 TOWNS = [(48.86, 2.35), (52.52, 13.40), (40.42, -3.70), (35.68, 139.65), (-33.87, 151.21),
          (40.71, -74.01), (34.05, -118.24), (-23.55, -46.63), (-1.29, 36.82), (28.61, 77.21)]

@@ -8,8 +8,8 @@ import pytest
 from vlm_vpr_ros.errors import ConfigError, DescriptorError
 from vlm_vpr_ros.geodesy import haversine_km
 from vlm_vpr_ros.localization.localizer import Localizer, LocalizerConfig
-from vlm_vpr_ros.maps.assemble import assemble_map
-from vlm_vpr_ros.priors.base import Prior, PriorResult
+from vlm_vpr_ros.mapping.assemble import assemble_map
+from vlm_vpr_ros.priors.provider import Prior, PriorResult
 
 # real cities (lat, lon) → clusters of references around them
 CITIES = {"paris": (48.8566, 2.3522), "tokyo": (35.6762, 139.6503),

@@ -20,13 +20,13 @@ from vlm_vpr_ros.evaluation.demo import make_query
 from vlm_vpr_ros.errors import MapError
 from vlm_vpr_ros.files.images import load_image
 from vlm_vpr_ros.localization.localizer import Localizer
-from vlm_vpr_ros.maps.assemble import assemble_map
-from vlm_vpr_ros.maps.build_images import read_coords_csv
-from vlm_vpr_ros.maps import edit as map_edit
+from vlm_vpr_ros.mapping.assemble import assemble_map
+from vlm_vpr_ros.mapping.build_images import read_coords_csv
+from vlm_vpr_ros.mapping import edit as map_edit
 from vlm_vpr_ros.maps.map_images import verify_images
 from vlm_vpr_ros.maps.reference_map import ReferenceMap
 from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
-from vlm_vpr_ros.priors.base import Prior, PriorResult
+from vlm_vpr_ros.priors.provider import Prior, PriorResult
 
 FAST = "vlad_rootsift_fast"
 

@@ -13,8 +13,8 @@ import pytest
 pytest.importorskip("vlm_vpr_ros.maps.indexes")  # format v2 / pq (issue 11)
 
 from vlm_vpr_ros.files.images import load_image  # noqa: E402
-from vlm_vpr_ros.maps.assemble import assemble_map  # noqa: E402
-from vlm_vpr_ros.maps.edit import add_references, remove_references  # noqa: E402
+from vlm_vpr_ros.mapping.assemble import assemble_map  # noqa: E402
+from vlm_vpr_ros.mapping.edit import add_references, remove_references  # noqa: E402
 from vlm_vpr_ros.maps.reference_map import ReferenceMap  # noqa: E402
 from vlm_vpr_ros.maps.indexes import PQ_MIN_REFS  # noqa: E402
 from vlm_vpr_ros.localization.pipeline import LocalizationPipeline  # noqa: E402
@@ -81,7 +81,7 @@ def test_add_and_remove_every_kind(base, demo_data, tmp_path, kind, v1):
     # each new reference is found by its own descriptor, with and without a prior
     pipe = LocalizationPipeline(m, pipe0.descriptor,
                                 type(pipe0.localizer)(m, pipe0.localizer.config))
-    from vlm_vpr_ros.priors.base import Prior, PriorResult
+    from vlm_vpr_ros.priors.provider import Prior, PriorResult
 
     for (f, a, b), d in zip(rows[36:44], new_desc):
         assert pipe.localize_descriptor(d).ref_id == f

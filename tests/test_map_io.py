@@ -7,9 +7,9 @@ import shutil
 import numpy as np
 import pytest
 
-from vlm_vpr_ros.maps import build_images as map_build
+from vlm_vpr_ros.mapping import build_images as map_build
 from vlm_vpr_ros.errors import DataError, MapError
-from vlm_vpr_ros.maps.build_images import build_map, read_coords_csv
+from vlm_vpr_ros.mapping.build_images import build_map, read_coords_csv
 from vlm_vpr_ros.maps.reference_map import ReferenceMap
 from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
 
@@ -163,7 +163,7 @@ def test_interrupted_build_resumes_without_redoing_chunks(tmp_path, demo_data, m
 
 
 def test_repartition_keeps_references_and_descriptors(demo_map):
-    from vlm_vpr_ros.maps.assemble import repartition
+    from vlm_vpr_ros.mapping.assemble import repartition
 
     m = ReferenceMap.load(demo_map)
     c = repartition(m, "country")

@@ -17,7 +17,7 @@ from node_harness import domain_id, image_msg, node_and_client
 from vlm_vpr_ros.errors import MapError
 from vlm_vpr_ros.geodesy import haversine_km
 from vlm_vpr_ros.files.images import load_image
-from vlm_vpr_ros.maps.edit import add_references
+from vlm_vpr_ros.mapping.edit import add_references
 from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
 from vlm_vpr_ros.priors import create_prior_provider
 from vlm_vpr_ros.runtime.worker import Frame, QueryRuntime, RuntimeConfig

@@ -13,11 +13,11 @@ import pytest
 from vlm_vpr_ros.cli import main
 from vlm_vpr_ros.errors import DataError, MapError
 from vlm_vpr_ros.localization.localizer import Localizer, LocalizerConfig
-from vlm_vpr_ros.maps.assemble import assemble_map
+from vlm_vpr_ros.mapping.assemble import assemble_map
 from vlm_vpr_ros.maps.reference_map import ReferenceMap
-from vlm_vpr_ros.maps import build_descriptors as mbuild
-from vlm_vpr_ros.maps.build_descriptors import build_from_descriptors
-from vlm_vpr_ros.priors.base import Prior, PriorResult
+from vlm_vpr_ros.mapping import build_descriptors as mbuild
+from vlm_vpr_ros.mapping.build_descriptors import build_from_descriptors
+from vlm_vpr_ros.priors.provider import Prior, PriorResult
 
 IDENT = {"name": "synthetic", "dim": 32, "config": {}, "preprocessing": {}}
 
@@ -478,7 +478,7 @@ def test_file_replaced_atomically_after_open_keeps_serving(pq_map, ref512, tmp_p
 
 def test_map_remove_keeps_pq_submaps_searchable(pq_map, ref512, tmp_path):
     """issue 13's map edit on a v2 pq map: rewritten submaps stay pq (shared codebook)."""
-    from vlm_vpr_ros.maps.edit import remove_references
+    from vlm_vpr_ros.mapping.edit import remove_references
 
     d, x, *_ = ref512
     out = tmp_path / "m"

@@ -12,7 +12,7 @@ from msg_adapters.navsat import (K68, K95, MAX_SIGMA_M, STATUS_FIX, STATUS_NO_FI
                                  fix_fields, horizontal_sigma, navsat_fix)
 from vlm_vpr_ros.errors import ConfigError
 from vlm_vpr_ros.localization.verification.status import StatusPolicy, stamp_status
-from vlm_vpr_ros.priors.base import Prior, PriorResult
+from vlm_vpr_ros.priors.provider import Prior, PriorResult
 from vlm_vpr_ros.types import Hypothesis
 
 

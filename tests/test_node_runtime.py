@@ -14,7 +14,7 @@ import pytest
 from msg_adapters.image import message_to_rgb
 from vlm_vpr_ros.geodesy import haversine_km
 from vlm_vpr_ros.priors import create_prior_provider
-from vlm_vpr_ros.priors.base import Prior, PriorProvider, PriorQuery, PriorResult
+from vlm_vpr_ros.priors.provider import Prior, PriorProvider, PriorQuery, PriorResult
 from vlm_vpr_ros.runtime.worker import Frame, QueryRuntime, RuntimeConfig, outcome_summary
 
 pytestmark = pytest.mark.timeout(60)
@@ -163,7 +163,7 @@ def test_fallback_fix_says_the_same_everywhere(pipeline, image):
 def published_by_outputs(out, policy) -> list[tuple[str, object]]:
     """What ``Outputs.publish`` sends for ``out`` (pose_on every_fix, a local ENU frame), on
     recording publishers instead of a ROS node."""
-    from vlm_vpr_ros.ros.outputs import Outputs
+    from vlm_vpr_ros.ros.publishers import Outputs
     from vlm_vpr_ros.runtime.metric_frame import metric_frame
     from vlm_vpr_ros.runtime.stats import Throttle
 

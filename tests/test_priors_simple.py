@@ -6,7 +6,7 @@ import pytest
 
 from vlm_vpr_ros.errors import ConfigError, DataError, PriorError
 from vlm_vpr_ros.priors import PriorQuery, create_prior_provider
-from vlm_vpr_ros.priors.base import PriorProvider, PriorResult
+from vlm_vpr_ros.priors.provider import PriorProvider, PriorResult
 
 
 def test_none_gives_no_prior_without_blocking():

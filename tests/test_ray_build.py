@@ -26,13 +26,13 @@ from ray_helpers import (DESCRIPTOR, DESCRIPTOR_OPTIONS, OBJECT_STORE, LocalClus
 from vlm_vpr_ros.distributed.describe import DescribeOptions, describe_to_shards
 from vlm_vpr_ros.distributed.engines import describe_items
 from vlm_vpr_ros.distributed.shards import ShardStore, read_shards
-from vlm_vpr_ros.distributed.sources import ImageSource
+from vlm_vpr_ros.mapping.image_sources import ImageSource
 from vlm_vpr_ros.errors import MapError
 from vlm_vpr_ros.files.images import load_image
-from vlm_vpr_ros.maps.build_images import build_map
+from vlm_vpr_ros.mapping.build_images import build_map
 from vlm_vpr_ros.maps.reference_map import ReferenceMap
 from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
-from vlm_vpr_ros.priors.base import Prior, PriorResult
+from vlm_vpr_ros.priors.provider import Prior, PriorResult
 
 CLUSTERS = 4
 N_REFS = 16

@@ -5,7 +5,7 @@ import pytest
 
 from vlm_vpr_ros.geodesy import haversine_km
 from vlm_vpr_ros.files.images import load_image
-from vlm_vpr_ros.maps.build_images import build_map, read_coords_csv
+from vlm_vpr_ros.mapping.build_images import build_map, read_coords_csv
 from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
 
 
@@ -37,7 +37,7 @@ def test_sf_night_recall_within_25m(sf):
 
 def test_sf_night_prior_restricts_to_submap(sf):
     root, map_dir = sf
-    from vlm_vpr_ros.priors.base import Prior, PriorResult
+    from vlm_vpr_ros.priors.provider import Prior, PriorResult
 
     pipe = LocalizationPipeline.open(map_dir, localizer={"fusion": "paper"})
     f, lat, lon = read_coords_csv(root / "queries.csv")[0]
@@ -75,7 +75,7 @@ def _offset(lat, lon, km, bearing):
 def _run(ref_map, desc, truth, priors, fold=None, **cfg):
     """(R@1 within 25 m, coverage of the 68 % and 95 % radii, wrong-continent answers)."""
     from vlm_vpr_ros.localization.localizer import Localizer, LocalizerConfig
-    from vlm_vpr_ros.priors.base import Prior, PriorResult
+    from vlm_vpr_ros.priors.provider import Prior, PriorResult
 
     loc = Localizer(ref_map, LocalizerConfig(**cfg))
     hits = c68 = c95 = far = 0
@@ -144,8 +144,8 @@ def twin(sf, sf_queries, tmp_path_factory):
 
     import numpy as np
 
-    from vlm_vpr_ros.maps.assemble import assemble_map
-    from vlm_vpr_ros.maps.build_images import write_map_calibration
+    from vlm_vpr_ros.mapping.assemble import assemble_map
+    from vlm_vpr_ros.mapping.build_images import write_map_calibration
     from vlm_vpr_ros.maps.reference_map import ReferenceMap
 
     _, map_dir = sf
@@ -194,8 +194,7 @@ def _twin_verified(twin, base, sf_described, priors, fused_hits, shift):
     """The twin map with its features (the SF references' own, copied to the look-alikes) and
     its own leave-one-out calibration: a verified fix never lands on the wrong continent, and
     with a prior on the wrong continent there is none (the answer is prior_resolved)."""
-    from vlm_vpr_ros.localization.verification.build import (ReferenceExtractor, calibrate_map,
-                                                             store_features)
+    from vlm_vpr_ros.mapping.local_features import ReferenceExtractor, calibrate_map, store_features
     from vlm_vpr_ros.maps.features import FeatureStore
     from vlm_vpr_ros.maps.reference_map import ReferenceMap
 
@@ -241,7 +240,7 @@ def test_one_pass_retrieval_answers_as_two_searches(sf, sf_queries, twin):
     from two_search import TwoSearchLocalizer, assert_same_answers
 
     from vlm_vpr_ros.localization.localizer import Localizer, LocalizerConfig
-    from vlm_vpr_ros.priors.base import Prior, PriorResult
+    from vlm_vpr_ros.priors.provider import Prior, PriorResult
 
     desc, truth = sf_queries
     rng = np.random.default_rng(2)
@@ -263,7 +262,7 @@ def _verified(pipe, queries, truth, priors, cut=17):
     """Run the full pipeline (retrieval, fusion, verification, status) on precomputed query
     descriptions; per-answer (error m, status, sigma m, p_correct, covered by r68) and R@1."""
     from vlm_vpr_ros.localization.verification.status import horizontal_sigma
-    from vlm_vpr_ros.priors.base import Prior, PriorResult
+    from vlm_vpr_ros.priors.provider import Prior, PriorResult
 
     out = []
     for q, (la, lo), p in zip(queries, truth, priors):

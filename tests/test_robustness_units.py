@@ -90,7 +90,7 @@ def test_relocalize_gate_answers_every_caller_and_shares_the_query(demo_map, dem
     from msg_adapters.image import message_to_rgb
     from vlm_vpr_ros.files.images import load_image
     from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
-    from vlm_vpr_ros.priors.base import PriorProvider
+    from vlm_vpr_ros.priors.provider import PriorProvider
     from vlm_vpr_ros.runtime.worker import Frame, QueryRuntime, RuntimeConfig
 
     class Hung(PriorProvider):

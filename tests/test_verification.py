@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from vlm_vpr_ros.errors import ConfigError
-from vlm_vpr_ros.localization.verification.base import (available_features,
-                                                        available_matchers, create_feature,
-                                                        create_matcher)
-from vlm_vpr_ros.localization.verification.calibration import PCorrect, verified_radius
+from vlm_vpr_ros.localization.verification.components import (available_features,
+                                                              available_matchers, create_feature,
+                                                              create_matcher)
+from vlm_vpr_ros.localization.verification.p_correct import PCorrect, verified_radius
 from vlm_vpr_ros.localization.verification.evidence import EvidenceConfig, weigh
 from vlm_vpr_ros.localization.verification.geometry import GeometryConfig, fundamental_inliers
 from vlm_vpr_ros.localization.verification.presets import get_preset, preset_for_map

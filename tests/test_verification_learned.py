@@ -11,7 +11,7 @@ torch = pytest.importorskip("torch")
 KF = pytest.importorskip("kornia.feature")
 
 from vlm_vpr_ros.errors import DescriptorError  # noqa: E402
-from vlm_vpr_ros.localization.verification.base import create_feature, create_matcher  # noqa
+from vlm_vpr_ros.localization.verification.components import create_feature, create_matcher  # noqa
 from vlm_vpr_ros.localization.verification.learned import LIGHTGLUE_DISK  # noqa: E402
 
 
@@ -75,7 +75,7 @@ def test_a_disk_lightglue_map_end_to_end(weights, demo_data, tmp_path):
     from test_verification_maps import first_rows
     from vlm_vpr_ros.files.images import load_image
     from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
-    from vlm_vpr_ros.maps.build_images import build_map
+    from vlm_vpr_ros.mapping.build_images import build_map
     from vlm_vpr_ros.maps.features import FeatureStore
     from vlm_vpr_ros.maps.reference_map import ReferenceMap
 

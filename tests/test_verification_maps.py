@@ -58,7 +58,7 @@ def test_builder_stores_features_equal_to_a_fresh_extraction(demo_map, demo_data
     assert all(rel in man["files"] for rel in listed)
     assert sec["bytes"] == sum(man["files"][rel]["bytes"] for rel in listed)
     store = FeatureStore.open(demo_map, man)
-    from vlm_vpr_ros.localization.verification.base import create_feature
+    from vlm_vpr_ros.localization.verification.components import create_feature
 
     x = create_feature("sift", sec["feature"]["config"])
     sub = m.submaps[0]
@@ -185,7 +185,7 @@ def test_damaged_or_foreign_feature_store(demo_map, tmp_path, caplog):
 
 def test_map_without_features_verifies_from_images_but_claims_nothing(demo_data, tmp_path,
                                                                      caplog):
-    from vlm_vpr_ros.maps.build_images import build_map
+    from vlm_vpr_ros.mapping.build_images import build_map
 
     rows, coords = first_rows(demo_data, 14, tmp_path / "c.csv")
     m = tmp_path / "map"
@@ -215,7 +215,7 @@ def test_map_without_features_verifies_from_images_but_claims_nothing(demo_data,
 
 
 def test_map_add_remove_keep_features_row_aligned(demo_half_map, demo_data, tmp_path):
-    from vlm_vpr_ros.maps.edit import add_references, remove_references
+    from vlm_vpr_ros.mapping.edit import add_references, remove_references
 
     rows, src = demo_half_map
     m = copy_map(src, tmp_path / "m")
@@ -234,7 +234,7 @@ def test_map_add_remove_keep_features_row_aligned(demo_half_map, demo_data, tmp_
     where = {i: (s.id, j) for s in after.submaps for j, i in enumerate(s.ids)}
     got = store.get(*where[keep_id])  # a kept reference: its bytes carried over
     assert np.array_equal(got.descriptors, old.descriptors)
-    from vlm_vpr_ros.localization.verification.build import map_extractor
+    from vlm_vpr_ros.mapping.local_features import map_extractor
 
     refx = map_extractor(after, LocalizationPipeline.open(m).descriptor)
     new = refx.extractor.extract(load_image(demo_data / "images" / rows[39][0]),
@@ -301,7 +301,7 @@ def test_calibrate_adds_the_users_wrong_answers(demo_map, demo_data, tmp_path):
     """``vlm-vpr calibrate``: the inlier ratios of labelled answers more than 25 m off join the
     map's leave-one-out wrong answers; p_correct then rests on both."""
     from vlm_vpr_ros.cli import main
-    from vlm_vpr_ros.localization.verification.calibration import PCorrect, load_doc
+    from vlm_vpr_ros.localization.verification.p_correct import PCorrect, load_doc
 
     m = copy_map(demo_map, tmp_path / "m")
     rows = list(csv.DictReader(open(demo_data / "coords.csv")))[:12]

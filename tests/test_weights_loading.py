@@ -146,7 +146,7 @@ def test_cli_fetch_list_check(hub, ckpt, tmp_path):
 def test_map_records_and_enforces_descriptor(tmp_path, demo_data, ckpt, caplog):
     """A map built with a deep descriptor stores model/release/preprocessing (no paths) and a
     pipeline with another descriptor refuses it."""
-    from vlm_vpr_ros.maps.build_images import build_map
+    from vlm_vpr_ros.mapping.build_images import build_map
     from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
 
     rows = list(csv.DictReader(open(demo_data / "coords.csv")))[:4]

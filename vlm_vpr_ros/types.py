@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from vlm_vpr_ros.priors.base import Prior, PriorResult
+from vlm_vpr_ros.priors.provider import Prior, PriorResult
 
 
 @dataclass

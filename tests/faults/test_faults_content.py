@@ -21,7 +21,7 @@ PLACES = [(48.8566, 2.3522), (-33.8688, 151.2093)]  # Paris, Sydney: ~16,950 km 
 def twin(tmp_path_factory):
     """A v2 map of two K-means submaps of equal size (equal file sizes), its query
     descriptors and the query CSV."""
-    from vlm_vpr_ros.maps.build_descriptors import build_from_descriptors
+    from vlm_vpr_ros.mapping.build_descriptors import build_from_descriptors
 
     root = tmp_path_factory.mktemp("twin")
     rng = np.random.default_rng(7)
@@ -246,7 +246,7 @@ def test_map_add_under_an_open_map_is_not_a_content_change(map_copy, demo_data, 
     sees the new references."""
     from vlm_vpr_ros.files.images import load_image
     from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
-    from vlm_vpr_ros.maps.edit import add_references
+    from vlm_vpr_ros.mapping.edit import add_references
 
     pipe = LocalizationPipeline.open(map_copy)
     pipe.map.submaps[0].opened()  # one open, the others not yet

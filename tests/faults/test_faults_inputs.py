@@ -188,7 +188,7 @@ def test_build_numbers(cli, tmp_path, demo_data):
 
 @pytest.mark.fault("cli_descriptor_options")
 def test_descriptor_options_checked_before_the_build(cli, tmp_path, demo_data, monkeypatch):
-    from vlm_vpr_ros.maps import build_images
+    from vlm_vpr_ros.mapping import build_images
 
     def no_work(*a, **k):
         raise AssertionError("the build started")

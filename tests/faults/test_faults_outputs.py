@@ -344,7 +344,7 @@ class _FullDisk:
 @pytest.mark.fault("disk_full_build")
 def test_disk_full_during_build(cli, map_copy, demo_data, tmp_path, monkeypatch, caplog):
     from vlm_vpr_ros.files import atomic
-    from vlm_vpr_ros.maps import build_images as map_build
+    from vlm_vpr_ros.mapping import build_images as map_build
     from vlm_vpr_ros.maps.reference_map import ReferenceMap
 
     monkeypatch.setattr(map_build, "CHUNK", 8)

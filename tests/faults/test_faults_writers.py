@@ -65,7 +65,7 @@ class _Paused:
 @pytest.mark.fault("lock_build_during_add")
 def test_build_overwrite_while_map_add_runs(cli, map_copy, demo_data, tmp_path, new_refs,
                                             monkeypatch):
-    from vlm_vpr_ros.maps.edit import add_references
+    from vlm_vpr_ros.mapping.edit import add_references
     from vlm_vpr_ros.maps.reference_map import ReferenceMap
     from vlm_vpr_ros.maps.transaction import Transaction
 
@@ -93,7 +93,7 @@ def test_build_overwrite_while_map_add_runs(cli, map_copy, demo_data, tmp_path, 
 def test_map_add_while_build_overwrite_runs(cli, map_copy, demo_data, tmp_path, new_refs,
                                             monkeypatch):
     from vlm_vpr_ros.files.outputs import StagedOutput
-    from vlm_vpr_ros.maps.build_images import build_map
+    from vlm_vpr_ros.mapping.build_images import build_map
     from vlm_vpr_ros.maps.reference_map import ReferenceMap
 
     folder, csv, _ = new_refs
@@ -120,7 +120,7 @@ def test_edit_never_writes_through_a_swapped_path(map_copy, tmp_path, new_refs, 
     """A tool that ignores the lock (`mv`, `rsync`) swaps the map while an edit runs: the edit
     is abandoned; nothing is written into the folder now at that path."""
     from vlm_vpr_ros.errors import MapError
-    from vlm_vpr_ros.maps.edit import add_references
+    from vlm_vpr_ros.mapping.edit import add_references
     from vlm_vpr_ros.maps.reference_map import ReferenceMap
     from vlm_vpr_ros.maps.transaction import Transaction
 

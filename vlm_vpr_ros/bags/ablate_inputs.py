@@ -14,7 +14,7 @@ from typing import Any, Iterator
 import numpy as np
 
 from vlm_vpr_ros.errors import ConfigError, DataError, ImageDecodeError
-from vlm_vpr_ros.priors.base import PriorProvider, PriorQuery, PriorResult
+from vlm_vpr_ros.priors.provider import PriorProvider, PriorQuery, PriorResult
 
 log = logging.getLogger(__name__)
 
@@ -37,7 +37,7 @@ def _collect(items: Iterator[tuple[str, np.ndarray, bytes | None, tuple[float, f
 def from_files(pipe: Any, provider: PriorProvider, images_dir: str, queries_csv: str,
                timeout_s: float = 60.0) -> tuple[np.ndarray, np.ndarray, list[PriorResult]]:
     from vlm_vpr_ros.files.images import load_image
-    from vlm_vpr_ros.maps.build_images import read_coords_csv
+    from vlm_vpr_ros.mapping.build_images import read_coords_csv
 
     rows = read_coords_csv(queries_csv)
 

@@ -24,7 +24,7 @@ from vlm_vpr_ros.errors import BagError, VlmVprError
 from vlm_vpr_ros.files.csvio import write_csv_atomic
 from vlm_vpr_ros.evaluation.metrics import errors_km, fix_metrics, summarize
 from vlm_vpr_ros.files.atomic import atomic_write_json
-from vlm_vpr_ros.priors.base import PriorProvider, PriorQuery, wait_prior
+from vlm_vpr_ros.priors.provider import PriorProvider, PriorQuery, wait_prior
 
 log = logging.getLogger(__name__)
 

@@ -280,10 +280,10 @@ def build_map_from_bag(bag_path: str | os.PathLike[str], out_dir: str | os.PathL
                        config: TeachConfig | None = None, overwrite: bool = False,
                        progress: bool = True, **build_options):
     """``vlm-vpr build-map --bag``: extract the references, build the map next to ``out_dir``
-    with :func:`vlm_vpr_ros.maps.build_images.build_map` (``build_options``: descriptor,
+    with :func:`vlm_vpr_ros.mapping.build_images.build_map` (``build_options``: descriptor,
     partition, ...), store the images in it and move it into place. Returns (ReferenceMap,
     TeachResult)."""
-    from vlm_vpr_ros.maps.build_images import build_map
+    from vlm_vpr_ros.mapping.build_images import build_map
     from vlm_vpr_ros.maps.map_images import attach_images
     from vlm_vpr_ros.maps.reference_map import ReferenceMap
     from vlm_vpr_ros.files.atomic import atomic_write_json

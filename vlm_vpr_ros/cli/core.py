@@ -169,7 +169,7 @@ def check_source_args(args: argparse.Namespace) -> None:
 
 
 def cmd_build_map(args: argparse.Namespace) -> int:
-    from vlm_vpr_ros.maps.build_images import build_map
+    from vlm_vpr_ros.mapping.build_images import build_map
 
     check_source_args(args)
     local = local_feature_options(args)
@@ -191,7 +191,7 @@ def cmd_build_map(args: argparse.Namespace) -> int:
     sizing = {"ram_budget_mb": args.ram_budget_mb, "max_submap_size": args.max_submap_size,
               "rerank_factor": args.rerank_factor}
     if args.descriptors:
-        from vlm_vpr_ros.maps.build_descriptors import build_from_descriptors
+        from vlm_vpr_ros.mapping.build_descriptors import build_from_descriptors
 
         engine_options(args)  # Ray-only options without --engine ray are errors
         if args.engine == "ray":

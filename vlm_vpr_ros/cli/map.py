@@ -76,8 +76,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     q.set_defaults(func=cmd_upgrade)
 
 def cmd_map_add(args: argparse.Namespace) -> int:
-    from vlm_vpr_ros.maps.build_images import read_coords_csv
-    from vlm_vpr_ros.maps.edit import add_references
+    from vlm_vpr_ros.mapping.build_images import read_coords_csv
+    from vlm_vpr_ros.mapping.edit import add_references
 
     check_source_args(args)
     store = {"auto": None, "yes": True, "no": False}[args.store_images]
@@ -117,7 +117,7 @@ def cmd_map_add(args: argparse.Namespace) -> int:
 
 
 def cmd_map_remove(args: argparse.Namespace) -> int:
-    from vlm_vpr_ros.maps.edit import read_ids_file, remove_references
+    from vlm_vpr_ros.mapping.edit import read_ids_file, remove_references
 
     ids = read_ids_file(args.ids)
     res = remove_references(args.map, ids, source={"ids_file": str(args.ids)})
@@ -235,7 +235,7 @@ def cmd_upgrade(args: argparse.Namespace) -> int:
     from vlm_vpr_ros.errors import MapError
     from vlm_vpr_ros.files.lock import WriterLock
     from vlm_vpr_ros.files.outputs import StagedOutput, check_not_inside
-    from vlm_vpr_ros.maps.build_descriptors import convert_map
+    from vlm_vpr_ros.mapping.build_descriptors import convert_map
     from vlm_vpr_ros.maps.documents import carry_companions
     from vlm_vpr_ros.maps.reference_map import ReferenceMap
 

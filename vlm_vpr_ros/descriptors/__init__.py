@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping
 
 from vlm_vpr_ros.config import choose
-from vlm_vpr_ros.descriptors.base import GlobalDescriptor, l2_normalize
+from vlm_vpr_ros.descriptors.global_descriptor import GlobalDescriptor, l2_normalize
 
 __all__ = [
     "GlobalDescriptor",

@@ -18,7 +18,7 @@ import numpy as np
 
 from vlm_vpr_ros.config import from_mapping
 from vlm_vpr_ros.descriptors import DescriptorPreset, register_descriptor
-from vlm_vpr_ros.descriptors.base import GlobalDescriptor, l2_normalize
+from vlm_vpr_ros.descriptors.global_descriptor import GlobalDescriptor, l2_normalize
 from vlm_vpr_ros.descriptors.local_sift import gray_frame, sift_detect
 from vlm_vpr_ros.errors import DescriptorError
 

@@ -1,7 +1,7 @@
 """``build-map --engine ray``: the local build's steps with describing, partitioning and index
 building on Ray.
 
-The map build itself is :func:`vlm_vpr_ros.maps.build_images.build_map` (same up-to-date check,
+The map build itself is :func:`vlm_vpr_ros.mapping.build_images.build_map` (same up-to-date check,
 fingerprint, skipped list, manifest and atomic save); this module only supplies its
 ``engine``: images are described into descriptor shards in the build's work folder
 (``MAP/.build/shards``, resumable), read back from the shards, then the partition and the
@@ -18,8 +18,10 @@ import numpy as np
 
 from vlm_vpr_ros.descriptors import GlobalDescriptor
 from vlm_vpr_ros.distributed.describe import DescribeOptions, describe_to_shards
+from vlm_vpr_ros.distributed.ray_engine import RaySession
 from vlm_vpr_ros.distributed.shards import read_shards
-from vlm_vpr_ros.distributed.sources import ImageSource
+from vlm_vpr_ros.mapping.build_images import build_map
+from vlm_vpr_ros.mapping.image_sources import ImageSource
 from vlm_vpr_ros.maps.reference_map import ReferenceMap
 
 log = logging.getLogger(__name__)
@@ -63,9 +65,6 @@ def build_map_ray(images_dir: str | Path, coords_csv: str | Path, out_dir: str |
     """``build_map`` with the Ray engine (starts a local Ray without ``ray_address``). The
     references' local features (``local_features``, docs/verification.md) are extracted by
     the driver after the Ray pass, in the build's resumable chunks."""
-    from vlm_vpr_ros.distributed.ray_engine import RaySession
-    from vlm_vpr_ros.maps.build_images import build_map
-
     opts = options or DescribeOptions(engine="ray")
     opts.engine = "ray"
     opts.validate()

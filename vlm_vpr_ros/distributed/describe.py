@@ -10,7 +10,7 @@ The job is the same for both engines (only *where* images are described differs)
    may not be, contain or lie inside the images folder); a finished folder of the same job is
    "up to date";
 2. a stateful descriptor (``vlad_rootsift``) is fitted ONCE on the same sample as the local
-   ``build-map`` (:func:`vlm_vpr_ros.maps.build_images.fit_sample_indices`) and its state is
+   ``build-map`` (:func:`vlm_vpr_ros.mapping.build_images.fit_sample_indices`) and its state is
    saved, then sent to every worker;
 3. the images of unfinished shards are described in batches; a shard is written as soon as all
    its rows are back, so a killed run loses at most the shards in flight;
@@ -31,10 +31,14 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from vlm_vpr_ros.descriptors import GlobalDescriptor, create_descriptor
+from vlm_vpr_ros.distributed import ENGINES
+from vlm_vpr_ros.distributed.ray_engine import RaySession
 from vlm_vpr_ros.distributed.shards import (DEFAULT_SHARD_SIZE, ShardStore, finished_job,
                                             job_fingerprint, plan_shards, unfinished_job)
 from vlm_vpr_ros.distributed.engines import Engine, LocalEngine
-from vlm_vpr_ros.distributed.sources import ImageSource, is_uri
+from vlm_vpr_ros.files.outputs import StagedOutput, check_not_inside
+from vlm_vpr_ros.mapping.build_images import fit_sample_indices
+from vlm_vpr_ros.mapping.image_sources import ImageSource, is_uri
 from vlm_vpr_ros.errors import ConfigError, DescriptorError
 
 log = logging.getLogger(__name__)
@@ -65,8 +69,6 @@ class DescribeOptions:
     ray_init: dict[str, Any] = field(default_factory=dict)
 
     def validate(self) -> None:
-        from vlm_vpr_ros.distributed import ENGINES
-
         if self.engine not in ENGINES:
             raise ConfigError(f"unknown engine {self.engine!r}; choices: {', '.join(ENGINES)}")
         if self.workers is not None and self.workers < 1:
@@ -129,8 +131,6 @@ def describe_to_shards(images: str | Path, ids: Sequence[str], out: str | Path,
     (a build's own scratch folder, already under the map's lock). ``inputs``: other input
     files (the coordinates CSV) that ``out`` must not be, contain or lie inside.
     """
-    from vlm_vpr_ros.files.outputs import StagedOutput, check_not_inside
-
     opts = options or DescribeOptions()
     opts.validate()
     t_start = time.monotonic()
@@ -170,8 +170,6 @@ def _describe_into(folder: Path, source: ImageSource, ids: list[str], desc: Glob
                    opts: DescribeOptions, fingerprint: str, overwrite: bool,
                    engine: Engine | None, t_start: float) -> DescribeResult:
     """The job proper, in a folder that is this job's own (resumed when it holds it)."""
-    from vlm_vpr_ros.maps.build_images import fit_sample_indices
-
     own_engine = engine is None
     if engine is None:  # first: a cluster that cannot be reached leaves nothing behind
         engine = make_engine(opts, desc, source)
@@ -287,7 +285,6 @@ def _bar(total: int, initial: int, enabled: bool):
 def make_engine(opts: DescribeOptions, desc: GlobalDescriptor, source: ImageSource) -> Any:
     if opts.engine == "local":
         return LocalEngine(desc, source, opts.batch_size)
-    from vlm_vpr_ros.distributed.ray_engine import RaySession
 
     session = RaySession(opts)
     try:

@@ -10,7 +10,7 @@ from typing import Any, Iterator, Mapping, Protocol, Sequence
 import numpy as np
 
 from vlm_vpr_ros.descriptors import GlobalDescriptor
-from vlm_vpr_ros.distributed.sources import ImageSource
+from vlm_vpr_ros.mapping.image_sources import ImageSource
 from vlm_vpr_ros.errors import ImageDecodeError
 
 log = logging.getLogger(__name__)

@@ -24,7 +24,12 @@ from urllib.parse import urlsplit
 
 import numpy as np
 
+from vlm_vpr_ros.descriptors import create_descriptor
+from vlm_vpr_ros.distributed.engines import describe_items, fit_on_sample
 from vlm_vpr_ros.errors import ConfigError, DescriptorError, VlmVprError
+from vlm_vpr_ros.mapping.assemble import new_index
+from vlm_vpr_ros.maps.format import check_descriptor_identity
+from vlm_vpr_ros.maps.partition import make_partition
 
 log = logging.getLogger(__name__)
 
@@ -151,8 +156,6 @@ class RaySession:
 
     def partition(self, method: str, lat, lon, clusters: int, seed: int):
         """``make_partition`` as one Ray task."""
-        from vlm_vpr_ros.maps.partition import make_partition
-
         task = self.ray.remote(num_cpus=1, max_retries=2)(make_partition)
         return self.ray.get(task.remote(method, np.asarray(lat), np.asarray(lon), clusters,
                                         seed))
@@ -169,17 +172,12 @@ class RaySession:
 def _index_bytes(kind: str, dim: int, vectors: np.ndarray) -> np.ndarray:
     import faiss
 
-    from vlm_vpr_ros.maps.assemble import new_index
-
     index = new_index(kind, dim)
     index.add(np.ascontiguousarray(vectors, dtype=np.float32))
     return faiss.serialize_index(index)
 
 
 def _fit_task(name: str, config: Mapping[str, Any], source, sample_ids: list[str]):
-    from vlm_vpr_ros.descriptors import create_descriptor
-    from vlm_vpr_ros.distributed.engines import fit_on_sample
-
     return fit_on_sample(create_descriptor(name, config), source, sample_ids)
 
 
@@ -188,9 +186,6 @@ class _Describer:
 
     def __init__(self, name: str, config: Mapping[str, Any], state: Mapping[str, np.ndarray],
                  identity: Mapping[str, Any], source) -> None:
-        from vlm_vpr_ros.descriptors import create_descriptor
-        from vlm_vpr_ros.maps.format import check_descriptor_identity
-
         self.desc = create_descriptor(name, config)
         if state:
             self.desc.load_state(state)
@@ -203,8 +198,6 @@ class _Describer:
         self.source = source
 
     def __call__(self, batch: dict[str, np.ndarray]) -> dict[str, Any]:
-        from vlm_vpr_ros.distributed.engines import describe_items
-
         items = list(zip(batch["i"].tolist(), [str(x) for x in batch["id"]]))
         idx, ok, feats, reasons = describe_items(self.desc, self.source, items)
         return {"i": idx, "ok": ok, "desc": feats, "reason": np.array(reasons, dtype=object)}
@@ -234,9 +227,6 @@ class RayDescriber:
         faiss k-means depends on the thread count, so this gives the local build's state bit
         for bit. ``"cluster"`` runs it as one Ray task (for drivers that cannot read the
         images, e.g. Ray Client from a laptop)."""
-        from vlm_vpr_ros.descriptors import create_descriptor
-        from vlm_vpr_ros.distributed.engines import fit_on_sample
-
         t0 = time.monotonic()
         if self.opts.fit_on == "driver":
             state = fit_on_sample(create_descriptor(name, config), self.source, sample_ids)
@@ -255,7 +245,6 @@ class RayDescriber:
 
         if not items:
             return
-        from vlm_vpr_ros.descriptors import create_descriptor  # noqa: F401 (fail early)
 
         bs = self.opts.batch_size
         # Blocks of whole batches: each block is one actor task, retried as a unit.

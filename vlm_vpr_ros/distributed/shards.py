@@ -31,6 +31,7 @@ import numpy as np
 from vlm_vpr_ros.errors import DataError, DescriptorError, MapError
 from vlm_vpr_ros.files.atomic import (atomic_save_npy, atomic_save_npz, atomic_write_bytes,
                                       atomic_write_json)
+from vlm_vpr_ros.maps.sources import open_source, read_aligned
 
 log = logging.getLogger(__name__)
 
@@ -190,9 +191,6 @@ def read_shards(folder: str | Path, ids: Sequence[str]) -> tuple[np.ndarray, np.
     not ok. Delegates to the one reader of the descriptor-source contract
     (:mod:`vlm_vpr_ros.maps.sources`, issue 11); its errors are raised as MapError here.
     """
-    from vlm_vpr_ros.errors import DataError
-    from vlm_vpr_ros.maps.sources import open_source, read_aligned
-
     try:
         return read_aligned(open_source(folder), list(ids))
     except DataError as exc:

@@ -14,7 +14,7 @@ Rows (each evaluated at every top-p of the sweep):
 The ``fusion`` column says which fusion mode each row runs (the paper's rows: ``paper``).
 
 The country and cluster partitions are made in memory from the same map
-(:func:`vlm_vpr_ros.maps.assemble.repartition`), so one map and one set of descriptors serve
+(:func:`vlm_vpr_ros.mapping.assemble.repartition`), so one map and one set of descriptors serve
 every row.
 The prior itself (``prior only``) is reported as a reference row.
 """
@@ -32,8 +32,8 @@ from vlm_vpr_ros.evaluation.metrics import errors_km, summarize
 from vlm_vpr_ros.geodesy import THRESHOLDS_KM
 from vlm_vpr_ros.localization.localizer import Localizer, LocalizerConfig
 from vlm_vpr_ros.maps.reference_map import ReferenceMap
-from vlm_vpr_ros.maps.assemble import repartition
-from vlm_vpr_ros.priors.base import PriorResult
+from vlm_vpr_ros.mapping.assemble import repartition
+from vlm_vpr_ros.priors.provider import PriorResult
 
 log = logging.getLogger(__name__)
 

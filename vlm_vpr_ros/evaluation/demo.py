@@ -109,7 +109,7 @@ def make_query(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
 def make_queries(out_dir: Path, seed: int = 0) -> Path:
     """Write query images + ``queries.csv`` (file, lat, lon ground truth); returns the CSV."""
     from vlm_vpr_ros.files.csvio import write_csv_atomic
-    from vlm_vpr_ros.maps.build_images import read_coords_csv
+    from vlm_vpr_ros.mapping.build_images import read_coords_csv
 
     qdir = out_dir / "queries"
     qdir.mkdir(parents=True, exist_ok=True)
@@ -196,7 +196,7 @@ def run_demo(out: str | Path, with_bag: bool = True) -> int:
     from vlm_vpr_ros.localization.localizer import LocalizerConfig
     from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
     from vlm_vpr_ros.localization.verification.stage import Verifier
-    from vlm_vpr_ros.maps.build_images import build_map, read_coords_csv
+    from vlm_vpr_ros.mapping.build_images import build_map, read_coords_csv
 
     out = Path(out)
     t0 = time.monotonic()
@@ -282,7 +282,7 @@ def _figures(out: Path, files: list[str], extras: dict) -> dict:
 
 
 def _bag_demo(out: Path, map_dir: Path, queries: Path, n_steps: int) -> tuple[dict, dict]:
-    from vlm_vpr_ros.bags.demo import run_bag_demo
+    from vlm_vpr_ros.bags.bag_demo import run_bag_demo
     from vlm_vpr_ros.evaluation.metrics import format_table
 
     print(f"[{n_steps}/{n_steps}] making a demo bag from the queries and evaluating it ...",

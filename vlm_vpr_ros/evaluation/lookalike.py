@@ -101,9 +101,9 @@ def build_lookalike_map(pipe, refs: list[LookalikeRef], refs_dir: Path, map_dir:
     calibration of ``p_correct`` on :data:`LOO_QUERIES` references, as ``build-map`` does) to
     ``map_dir``; returns the opened :class:`ReferenceMap`."""
     from vlm_vpr_ros.files.outputs import StagedOutput
-    from vlm_vpr_ros.localization.verification.build import ReferenceExtractor
-    from vlm_vpr_ros.maps.assemble import assemble_map
-    from vlm_vpr_ros.maps.build_images import write_local_features, write_map_calibration
+    from vlm_vpr_ros.mapping.local_features import ReferenceExtractor
+    from vlm_vpr_ros.mapping.assemble import assemble_map
+    from vlm_vpr_ros.mapping.build_images import write_local_features, write_map_calibration
     from vlm_vpr_ros.maps.reference_map import ReferenceMap
 
     refx = ReferenceExtractor(pipe.descriptor, "sift")

@@ -33,6 +33,7 @@ import shutil
 from pathlib import Path
 from typing import Callable, Iterable
 
+from vlm_vpr_ros import __version__
 from vlm_vpr_ros.errors import OutputError
 from vlm_vpr_ros.files.atomic import describe_os_error
 from vlm_vpr_ros.files.lock import WriterLock, inside_lock
@@ -88,8 +89,6 @@ def _shards_meta(path: Path) -> bool:
 
 
 def write_marker(folder: Path, kind: str) -> None:
-    from vlm_vpr_ros import __version__
-
     (folder / MARKER).write_text(json.dumps({"kind": kind, "tool": "vlm_vpr_ros",
                                              "version": __version__}) + "\n", encoding="utf-8")
 

@@ -15,9 +15,10 @@ from typing import Any, Callable, Iterable, Iterator, Sequence, TypeVar
 import numpy as np
 
 from vlm_vpr_ros.errors import ImageDecodeError, VlmVprError
+from vlm_vpr_ros.files.csvio import write_csv_atomic
 from vlm_vpr_ros.files.images import load_image
 from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
-from vlm_vpr_ros.priors.base import PriorProvider, PriorQuery, PriorResult, wait_prior
+from vlm_vpr_ros.priors.provider import PriorProvider, PriorQuery, PriorResult, wait_prior
 from vlm_vpr_ros.redact import redact
 from vlm_vpr_ros.types import Hypothesis
 
@@ -140,8 +141,6 @@ class ResultsStream:
     def __init__(self, out: Path, done: list[dict]) -> None:
         import csv
 
-        from vlm_vpr_ros.files.csvio import write_csv_atomic
-
         self.out, self.partial = out, out.with_name(out.name + ".partial")
         write_csv_atomic(self.partial, RESULT_FIELDS, done)
         self._fh = self.partial.open("a", newline="", encoding="utf-8")
@@ -159,8 +158,6 @@ class ResultsStream:
 
     def finish(self, order: Sequence[str]) -> None:
         """Write ``OUT`` in query order atomically, then drop the partial file."""
-        from vlm_vpr_ros.files.csvio import write_csv_atomic
-
         self.close()
         rank = {f: i for i, f in enumerate(order)}
         rows = sorted(self.rows, key=lambda r: rank.get(r.get("file"), len(rank)))

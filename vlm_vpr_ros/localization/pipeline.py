@@ -19,7 +19,7 @@ from vlm_vpr_ros.localization.verification.stage import (VerificationConfig, Ver
                                                          widen_to_candidate_spread)
 from vlm_vpr_ros.localization.verification.status import StatusPolicy, stamp_status
 from vlm_vpr_ros.maps.reference_map import ReferenceMap, descriptor_for_map
-from vlm_vpr_ros.priors.base import PriorResult
+from vlm_vpr_ros.priors.provider import PriorResult
 from vlm_vpr_ros.types import Hypothesis, LocalFeatures
 
 log = logging.getLogger(__name__)

@@ -14,11 +14,14 @@ from typing import Any, Iterator, Sequence
 
 import numpy as np
 
+from vlm_vpr_ros.files.images import load_image
 from vlm_vpr_ros.localization.batch import result_row, started_ahead
 from vlm_vpr_ros.errors import DataError, ImageDecodeError, VlmVprError
 from vlm_vpr_ros.localization.localizer import Localizer
+from vlm_vpr_ros.localization.pipeline import verify_and_stamp
+from vlm_vpr_ros.localization.verification.status import StatusPolicy
 from vlm_vpr_ros.maps.sources import open_npy
-from vlm_vpr_ros.priors.base import PriorProvider, PriorQuery, wait_prior
+from vlm_vpr_ros.priors.provider import PriorProvider, PriorQuery, wait_prior
 
 log = logging.getLogger(__name__)
 
@@ -45,17 +48,12 @@ def localize_descriptors(localizer: Localizer, provider: PriorProvider, files: S
     :meth:`LocalizationPipeline.describe_query`) or extracted from the image in
     ``images_dir``; without either they are flagged ``unverified``. Statuses follow
     ``policy`` (default StatusPolicy)."""
-    from vlm_vpr_ros.localization.pipeline import verify_and_stamp
-    from vlm_vpr_ros.localization.verification.status import StatusPolicy
-
     policy = policy or StatusPolicy()
 
     def start(item: tuple[int, str]) -> Any:
         f = item[1]
         query = PriorQuery(key=f)
         if images_dir is not None:
-            from vlm_vpr_ros.files.images import load_image
-
             try:
                 path = Path(images_dir) / f
                 query = PriorQuery(image=load_image(path), encoded=path.read_bytes(), key=f)

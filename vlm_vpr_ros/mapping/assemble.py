@@ -8,7 +8,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from vlm_vpr_ros.config import choose
-from vlm_vpr_ros.maps.balance import split_large
+from vlm_vpr_ros.mapping.balance import split_large
 from vlm_vpr_ros.maps.indexes import (DEFAULT_RERANK_FACTOR, PQ_TRAIN_SAMPLE,
                                       check_kind, choose_kinds, effective_kind, make_index,
                                       measure_recall, train_pq)
@@ -26,7 +26,7 @@ def assemble_map(desc: np.ndarray, coords: np.ndarray, ids: list[str], identity:
     """Partition references and build one index per submap (in memory).
     ``index``: "flat" (float32, exact), "fp16" (exact on fp16-rounded descriptors), "pq"
     (PQ fast-scan + exact fp16 re-rank) or "auto" (per submap within ``ram_budget_mb``); see
-    maps/indexes.py. ``max_submap_size`` splits larger submaps (maps/balance.py).
+    maps/indexes.py. ``max_submap_size`` splits larger submaps (mapping/balance.py).
     ``engine``: run the partition and the flat/fp16 index builds elsewhere (``partition(...)``,
     ``build_indexes(kind, dim, parts)``; the Ray engine runs them as tasks); pq is built here."""
     check_kind(index)

@@ -21,15 +21,21 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from vlm_vpr_ros import __version__
 from vlm_vpr_ros.errors import DataError, MapError
+from vlm_vpr_ros.files.atomic import atomic_save_npz, atomic_write_json
 from vlm_vpr_ros.geodesy import farthest_km
+from vlm_vpr_ros.mapping.assemble import plan_kinds
+from vlm_vpr_ros.mapping.build_images import read_coords_csv
 from vlm_vpr_ros.maps import indexes
-from vlm_vpr_ros.maps.balance import split_large
-from vlm_vpr_ros.maps.format import content_matches
+from vlm_vpr_ros.mapping.balance import split_large
+from vlm_vpr_ros.maps.format import MANIFEST, MAP_FORMAT, METRIC, content_matches
+from vlm_vpr_ros.maps.partition import make_partition
+from vlm_vpr_ros.maps.reference_map import ReferenceMap, Submap
 from vlm_vpr_ros.maps.sources import CHUNK, DescriptorSource, descriptor_identity, open_source
 from vlm_vpr_ros.maps.store import (VERSION, encode_ids, file_table, pq_name, prefetch_rows,
                                     write_submap)
-from vlm_vpr_ros.files.outputs import StagedOutput
+from vlm_vpr_ros.files.outputs import StagedOutput, written_by_us
 
 log = logging.getLogger(__name__)
 
@@ -53,9 +59,6 @@ def _up_to_date(out_dir: Path, fp: str, overwrite: bool) -> bool:
     """True when ``out_dir`` already holds this map; a different map (or a folder this tool did
     not write) is refused unless ``overwrite`` (then replaced only when the new one is complete,
     see :mod:`vlm_vpr_ros.files.outputs`)."""
-    from vlm_vpr_ros.maps.format import MANIFEST
-    from vlm_vpr_ros.files.outputs import written_by_us
-
     if not ((out_dir / MANIFEST).is_file() and written_by_us(out_dir, "map")) or overwrite:
         return False
     try:
@@ -80,7 +83,6 @@ def _prepare_work(work: Path, fp: str) -> None:
             log.info("discarding a partial build with other inputs or settings")
             shutil.rmtree(work)
     work.mkdir(parents=True, exist_ok=True)
-    from vlm_vpr_ros.files.atomic import atomic_write_json
 
     atomic_write_json(job, {"fingerprint": fp})
 
@@ -257,9 +259,6 @@ def build_from_descriptors(source_path: str | Path, coords_csv: str | Path,
     """Build (or resume) a v2 map from precomputed descriptors; returns the opened map.
     Built in ``.OUT.partial/`` beside ``out_dir`` and swapped in when complete
     (:mod:`vlm_vpr_ros.files.outputs`): an old map stays until then."""
-    from vlm_vpr_ros.maps.build_images import read_coords_csv
-    from vlm_vpr_ros.maps.reference_map import ReferenceMap
-
     t0 = time.monotonic()
     out_dir = Path(out_dir)
     indexes.check_kind(index)
@@ -287,13 +286,6 @@ def _build_into(staged: Any, source: DescriptorSource, identity: dict, state: di
                 ram_budget_mb: float | None, max_submap_size: int | None, rerank_factor: int,
                 progress: bool, t0: float) -> None:
     """The build proper: scratch in ``staged.work``, the finished map in ``staged.path``."""
-    from vlm_vpr_ros.maps.assemble import plan_kinds
-    from vlm_vpr_ros.maps.format import MANIFEST, MAP_FORMAT, METRIC
-    from vlm_vpr_ros.maps.reference_map import ReferenceMap
-    from vlm_vpr_ros.files.atomic import atomic_save_npz, atomic_write_json
-    from vlm_vpr_ros.maps.partition import make_partition
-    from vlm_vpr_ros import __version__
-
     out_dir = staged.path
     work = staged.work
     file_rows = [r[0] for r in rows]
@@ -408,8 +400,6 @@ def _pq_codebook(desc: _Rows, keep: np.ndarray, kinds: list[str], work: Path,
 def convert_map(old: Any, kind: str, rerank_factor: int, seed: int = 0) -> Any:
     """The same submaps (ids, positions, descriptors) with indexes of ``kind``, in memory
     (``vlm-vpr map upgrade``: v1 maps are held in memory anyway)."""
-    from vlm_vpr_ros.maps.reference_map import ReferenceMap, Submap
-
     indexes.check_kind(kind, indexes.SUBMAP_KINDS)
     vecs = [np.ascontiguousarray(s.vectors(), dtype=np.float32) for s in old.submaps]
     kinds = [indexes.effective_kind(kind, len(v)) for v in vecs]

@@ -16,14 +16,21 @@ import numpy as np
 from vlm_vpr_ros.files.csvio import parse_latlon, read_rows, unique_rows
 from vlm_vpr_ros.descriptors import GlobalDescriptor, create_descriptor
 from vlm_vpr_ros.errors import DataError, ImageDecodeError, MapError
+from vlm_vpr_ros.localization.fusion.calibration import calibrate_references, save_calibration
+from vlm_vpr_ros.localization.fusion.error_model import load_error_models
+from vlm_vpr_ros.mapping.image_sources import ImageSource
+from vlm_vpr_ros.mapping.local_features import (LOO_QUERIES, ReferenceExtractor, calibrate_map,
+                                                store_features)
+from vlm_vpr_ros.maps.features import feature_files, read_features, write_submap_features
 from vlm_vpr_ros.maps.format import bad_ref_id
 from vlm_vpr_ros.files.images import check_rgb, load_image
 from vlm_vpr_ros.maps.format import MANIFEST
-from vlm_vpr_ros.maps.assemble import assemble_map
+from vlm_vpr_ros.mapping.assemble import assemble_map
 from vlm_vpr_ros.maps.reference_map import ReferenceMap
 from vlm_vpr_ros.files.atomic import atomic_save_npy, atomic_save_npz, atomic_write_json
 from vlm_vpr_ros.maps.indexes import (DEFAULT_RERANK_FACTOR, check_kind)
 from vlm_vpr_ros.files.outputs import StagedOutput, check_not_inside, written_by_us
+from vlm_vpr_ros.types import LocalFeatures
 
 log = logging.getLogger(__name__)
 CHUNK = 128
@@ -127,7 +134,6 @@ def build_map(images_dir: str | Path, coords_csv: str | Path, out_dir: str | Pat
     rows = read_coords_csv(coords_csv)
     desc = create_descriptor(descriptor, descriptor_config)
     check_kind(index)  # validate the name before any work
-    from vlm_vpr_ros.localization.verification.build import ReferenceExtractor
 
     refx = ReferenceExtractor(desc, local_features, feature_options, matcher_options)
     if index == "auto" and ram_budget_mb is None:
@@ -227,9 +233,6 @@ def _build_staged(images_dir: Any, rows, desc: GlobalDescriptor, stage: StagedOu
 def write_map_calibration(ref_map: ReferenceMap, desc: np.ndarray, coords: np.ndarray) -> None:
     """The fusion's leave-one-out calibration, stored as the map's one optional
     ``calibration.json`` (docs/fusion.md); rows of ``desc``/``coords`` in any order."""
-    from vlm_vpr_ros.localization.fusion.calibration import calibrate_references, save_calibration
-    from vlm_vpr_ros.localization.fusion.error_model import load_error_models
-
     t0 = time.monotonic()
     doc = calibrate_references(desc, coords, load_error_models().get())
     save_calibration(ref_map, doc)
@@ -241,10 +244,7 @@ def write_local_features(ref_map: ReferenceMap, refx: Any, features_of: Any,
                          progress: bool = False, loo_queries: int | None = None) -> None:
     """Store the references' local features in the saved map and calibrate ``p_correct`` by
     leave-one-out on them (docs/verification.md; ``loo_queries``: at most this many queries,
-    default :data:`~vlm_vpr_ros.localization.verification.build.LOO_QUERIES`)."""
-    from vlm_vpr_ros.localization.verification.build import (LOO_QUERIES, calibrate_map,
-                                                             store_features)
-
+    default :data:`~vlm_vpr_ros.mapping.local_features.LOO_QUERIES`)."""
     t0 = time.monotonic()
     store_features(ref_map, features_of, refx)
     log.info("local features stored (%s, %.0f kB per reference), %.1f s",
@@ -262,8 +262,6 @@ class ChunkFeatures:
         self._open: dict[int, Any] = {}
 
     def __call__(self, ref_id: str):
-        from vlm_vpr_ros.maps.features import read_features
-
         i = self.pos[ref_id]
         s = i - i % CHUNK
         if s not in self._open:
@@ -296,8 +294,6 @@ def _extract(desc: GlobalDescriptor, root: Path, rows, work: Path, progress: boo
              refx: Any = None):
     """Describe every row in resumable chunks (and store the chunk's local features when
     ``refx`` extracts them)."""
-    from vlm_vpr_ros.maps.features import feature_files, write_submap_features
-
     local = refx is not None and refx.enabled
     n = len(rows)
     feats = np.zeros((n, desc.dim), np.float32)
@@ -341,9 +337,6 @@ def _extract_local(refx: Any, images_dir: Any, rows, work: Path, progress: bool,
                    ok: np.ndarray) -> None:
     """Local features of the described rows, in this process, in the same resumable chunk
     files as :func:`_extract` (builds whose descriptors came from an engine)."""
-    from vlm_vpr_ros.distributed.sources import ImageSource
-    from vlm_vpr_ros.maps.features import feature_files, write_submap_features
-
     source = ImageSource(str(images_dir))
     x, empty = refx.extractor, _empty_features(refx)
     bar = _progress(None, len(rows), "local features", progress) if progress else None
@@ -366,8 +359,6 @@ def _extract_local(refx: Any, images_dir: Any, rows, work: Path, progress: bool,
 
 
 def _empty_features(refx: Any):
-    from vlm_vpr_ros.types import LocalFeatures
-
     dim, dtype = refx.extractor.descriptor_dim, refx.extractor.descriptor_dtype
     return LocalFeatures(np.zeros((0, 2), np.float32), np.zeros((0, dim), dtype), (0, 0))
 

@@ -33,13 +33,17 @@ import numpy as np
 
 from vlm_vpr_ros.errors import (ConfigError, DataError, DescriptorError, ImageDecodeError,
                                 MapError)
+from vlm_vpr_ros.files.csvio import read_file_column
+from vlm_vpr_ros.files.images import load_image
 from vlm_vpr_ros.geodesy import haversine_km, spherical_mean
-from vlm_vpr_ros.localization.verification.build import (calibrate_map, edit_features,
-                                                         map_extractor)
+from vlm_vpr_ros.mapping.assemble import new_index
+from vlm_vpr_ros.mapping.local_features import calibrate_map, edit_features, map_extractor
 from vlm_vpr_ros.maps import map_images
 from vlm_vpr_ros.maps.features import FeatureStore
+from vlm_vpr_ros.maps.indexes import effective_kind, make_index, measure_recall
 from vlm_vpr_ros.maps.map_images import IMAGES_DIR, image_index, safe_rel, write_image_index
-from vlm_vpr_ros.maps.reference_map import ReferenceMap
+from vlm_vpr_ros.maps.partition import country_codes, partition_kmeans
+from vlm_vpr_ros.maps.reference_map import ReferenceMap, descriptor_for_map
 from vlm_vpr_ros.maps.submap import Submap, submap_radius_km
 from vlm_vpr_ros.maps.transaction import Transaction, edit_lock, finish_manifest
 
@@ -93,8 +97,6 @@ def assign_submaps(ref_map: ReferenceMap, coords: np.ndarray, seed: int = 0) -> 
     if method == "none":
         return [ref_map.submaps[0].id] * len(coords)
     if method == "country":
-        from vlm_vpr_ros.maps.partition import country_codes
-
         return country_codes(lat, lon)
     if method != "kmeans":
         raise MapError(f"cannot add to a map partitioned by {method!r}")
@@ -108,8 +110,6 @@ def assign_submaps(ref_map: ReferenceMap, coords: np.ndarray, seed: int = 0) -> 
         out.append(ref_map.submaps[k].id if d[k] <= radius[k] else None)
     left = [i for i, s in enumerate(out) if s is None]
     if left:
-        from vlm_vpr_ros.maps.partition import partition_kmeans
-
         size = max(1, int(np.median([s.count for s in ref_map.submaps])))
         part = partition_kmeans(lat[left], lon[left], math.ceil(len(left) / size), seed)
         names = _next_kmeans_ids((s.id for s in ref_map.submaps), len(part.names))
@@ -125,8 +125,6 @@ def _describe(refx, root: Path, rows: Sequence[tuple[str, float, float]],
               progress: bool) -> tuple[np.ndarray, list[int], list[str], list]:
     """Global descriptors, rows read, rows skipped and local features (empty when the map
     stores none) of the references to add."""
-    from vlm_vpr_ros.files.images import load_image
-
     feats, good, skipped, local = [], [], [], []
     bar = None
     if progress:
@@ -184,8 +182,6 @@ def _rebuilt(ref_map: ReferenceMap, sub_id: str, vectors: np.ndarray, coords: np
     centroid = spherical_mean(coords[:, 0], coords[:, 1])
     kind = _kind_of(ref_map, like)
     if kind == "pq" or int(ref_map.manifest.get("version", 1)) >= 2:
-        from vlm_vpr_ros.maps.indexes import effective_kind, make_index, measure_recall
-
         kind = effective_kind(kind, len(vecs))
         trained = _pq_codebook(ref_map) if kind == "pq" else None
         index = make_index(kind, vecs, trained)
@@ -195,7 +191,6 @@ def _rebuilt(ref_map: ReferenceMap, sub_id: str, vectors: np.ndarray, coords: np
         return Submap(sub_id, centroid, coords, list(ids), index, kind=kind, rerank=rerank,
                       group=getattr(like, "group", "") if like is not None else "",
                       recall=recall)
-    from vlm_vpr_ros.maps.assemble import new_index
 
     index = new_index(kind, vecs.shape[1])
     index.add(vecs)
@@ -225,8 +220,6 @@ def add_references(map_dir: str | os.PathLike[str], images_dir: str | os.PathLik
     own descriptor and state and add them. ``descriptor``: the name the caller expects (a map
     built with another one is refused). ``store_images``: copy the images into the map
     (default: when the map already holds its images)."""
-    from vlm_vpr_ros.maps.reference_map import descriptor_for_map
-
     path, root = Path(map_dir), Path(images_dir)
     if not rows:
         raise DataError("nothing to add: no references given")
@@ -321,8 +314,6 @@ def read_ids_file(path: str | os.PathLike[str]) -> list[str]:
     CSV with a ``file`` column (e.g. a coordinates CSV)."""
     p = Path(path)
     if p.suffix.lower() == ".csv":
-        from vlm_vpr_ros.files.csvio import read_file_column
-
         ids = read_file_column(p)
     else:
         try:

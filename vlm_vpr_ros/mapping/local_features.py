@@ -6,7 +6,7 @@ calibration (images: ``build-map``; bags: ``build-map --bag``; ``map add/remove`
 * :func:`store_features`: write a saved map's feature files (:mod:`vlm_vpr_ros.maps.features`)
   from the features of each reference id.
 * :func:`calibrate_map`: the leave-one-out calibration of ``p_correct``
-  (:mod:`.calibration`), written as ``verification.json``.
+  (:mod:`~vlm_vpr_ros.localization.verification.p_correct`), written as ``verification.json``.
 """
 
 from __future__ import annotations
@@ -21,13 +21,16 @@ import numpy as np
 
 from vlm_vpr_ros.config import from_mapping
 from vlm_vpr_ros.errors import MapError
-from vlm_vpr_ros.localization.verification.base import (create_feature, create_matcher,
-                                                        one_blas_thread)
-from vlm_vpr_ros.localization.verification.calibration import loo_calibration, save_doc
+from vlm_vpr_ros.localization.verification.components import (create_feature, create_matcher,
+                                                              one_blas_thread)
+from vlm_vpr_ros.localization.verification.p_correct import loo_calibration, save_doc
 from vlm_vpr_ros.localization.verification.evidence import EvidenceConfig
 from vlm_vpr_ros.localization.verification.geometry import GeometryConfig, fundamental_inliers
-from vlm_vpr_ros.localization.verification.presets import VerifierPreset, preset_for_map
+from vlm_vpr_ros.localization.verification.presets import (VerifierPreset, get_preset,
+                                                           preset_for_map)
 from vlm_vpr_ros.localization.verification.sift import RootSift
+from vlm_vpr_ros.maps.features import (FeatureStore, attach_features, make_section,
+                                       write_submap_features)
 from vlm_vpr_ros.types import LocalFeatures
 
 log = logging.getLogger(__name__)
@@ -89,8 +92,6 @@ def store_features(ref_map: Any, features_of: Callable[[str], LocalFeatures],
                    extractor: ReferenceExtractor) -> None:
     """Write the feature files of the saved map ``ref_map`` (features of each reference id
     from ``features_of``) and list them in its manifest."""
-    from vlm_vpr_ros.maps.features import attach_features
-
     if ref_map.path is None:
         raise MapError("save the map before storing its local features")
     by_submap = {s.id: _Lazy(list(s.ids), features_of) for s in ref_map.submaps}
@@ -118,13 +119,10 @@ def calibrate_map(ref_map: Any, max_queries: int = LOO_QUERIES, top_k: int = 20,
                   matcher_options: Mapping[str, Any] | None = None) -> dict[str, Any] | None:
     """Leave-one-out calibration of ``p_correct`` on a saved map with stored local features,
     written as its ``verification.json``; None when the map stores no features."""
-    from vlm_vpr_ros.maps.features import FeatureStore
-
     store = FeatureStore.open(Path(ref_map.path), ref_map.manifest)
     if store is None:
         return None
     t0 = time.monotonic()
-    from vlm_vpr_ros.localization.verification.presets import get_preset
 
     preset = get_preset(store.preset or "sift")
     matcher = create_matcher(preset.matcher, {**preset.matcher_config,  # stored features are
@@ -188,8 +186,6 @@ def edit_features(tx: Any, ref_map: Any, gen: int,
     """``map add/remove`` inside its transaction ``tx``: write the feature files of every
     rewritten submap under the generation's names (``<id>.g<gen>``), drop those of emptied
     submaps, and update the manifest's ``local_features`` section in ``tx.new``."""
-    from vlm_vpr_ros.maps.features import make_section, write_submap_features
-
     sec = tx.new.get("local_features")
     if not sec:
         return

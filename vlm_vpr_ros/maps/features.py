@@ -38,6 +38,7 @@ import numpy as np
 from vlm_vpr_ros.errors import MapError
 from vlm_vpr_ros.files.atomic import atomic_write_json
 from vlm_vpr_ros.maps.format import MANIFEST, file_table
+from vlm_vpr_ros.maps.store import _load_array
 from vlm_vpr_ros.types import LocalFeatures
 
 log = logging.getLogger(__name__)
@@ -199,8 +200,6 @@ class _SubmapFeatures:
         if self._arrays is None:
             with self._lock:
                 if self._arrays is None:
-                    from vlm_vpr_ros.maps.store import _load_array
-
                     self.check()
                     f = self.files
                     rows = _load_array(self.root, f["rows"], (self.count, 4), "i8")

@@ -2,9 +2,9 @@
 
 :meth:`ReferenceMap.load` reads the manifest, checks it (:mod:`vlm_vpr_ros.maps.format`) and
 opens format version 2 memory-mapped and lazily (:mod:`vlm_vpr_ros.maps.store`) or version 1
-into memory (:mod:`vlm_vpr_ros.maps.v1`). Maps are built by :mod:`vlm_vpr_ros.maps.build_images`
-(images), :mod:`vlm_vpr_ros.maps.build_descriptors` (precomputed descriptors) and
-:mod:`vlm_vpr_ros.bags.teach` (a robot's bag), and edited by :mod:`vlm_vpr_ros.maps.edit`.
+into memory (:mod:`vlm_vpr_ros.maps.v1`). Maps are built by :mod:`vlm_vpr_ros.mapping.build_images`
+(images), :mod:`vlm_vpr_ros.mapping.build_descriptors` (precomputed descriptors) and
+:mod:`vlm_vpr_ros.bags.teach` (a robot's bag), and edited by :mod:`vlm_vpr_ros.mapping.edit`.
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ POOLED_ROLES = ("index", "coords", "ids")  # ... and, for a pooled submap, its i
 
 class ReferenceMap:
     """A loaded (or freshly built) map. Use :meth:`load`; build with
-    :func:`vlm_vpr_ros.maps.build_images.build_map` (module docstring)."""
+    :func:`vlm_vpr_ros.mapping.build_images.build_map` (module docstring)."""
 
     def __init__(self, manifest: dict, submaps: list[Submap],
                  descriptor_state: dict[str, np.ndarray], path: Path | None = None) -> None:

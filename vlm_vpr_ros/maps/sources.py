@@ -23,7 +23,11 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from vlm_vpr_ros.errors import DataError
+from vlm_vpr_ros.config import choose
+from vlm_vpr_ros.descriptors import available_descriptors, create_descriptor
+from vlm_vpr_ros.descriptors.deep.specs import get_spec
+from vlm_vpr_ros.errors import DataError, MapError
+from vlm_vpr_ros.maps.format import check_descriptor_identity
 
 log = logging.getLogger(__name__)
 
@@ -230,11 +234,6 @@ def descriptor_identity(name: str, source: DescriptorSource,
     """Identity (for the manifest) and fitted state of registry descriptor ``name`` for these
     descriptors, without loading any model weights. Checks the name and dim against
     ``describe.json`` and the registry."""
-    from vlm_vpr_ros.config import choose
-    from vlm_vpr_ros.descriptors import available_descriptors, create_descriptor
-    from vlm_vpr_ros.maps.format import check_descriptor_identity
-    from vlm_vpr_ros.errors import MapError
-
     preset = choose(name, available_descriptors(), "descriptor")
     given = (source.describe or {}).get("descriptor")
     if given is not None and given.get("name") != name:
@@ -267,7 +266,6 @@ def descriptor_identity(name: str, source: DescriptorSource,
 def _deep_identity(name: str, config: dict) -> dict:
     """The identity a deep descriptor would report, computed from its spec (no weights: the
     map records ``weights_sha256: null``, so any checkpoint of the release is accepted)."""
-    from vlm_vpr_ros.descriptors.deep.specs import get_spec
     from vlm_vpr_ros.descriptors.deep.torch_descriptor import DeepDescriptor, _check_resize
 
     spec = get_spec(name)
@@ -281,7 +279,7 @@ def _deep_identity(name: str, config: dict) -> dict:
 def read_aligned(source: DescriptorSource, ids: list[str]) -> tuple[np.ndarray, np.ndarray]:
     """In-memory ``(feats (n, dim) float32, ok (n,) bool)`` aligned with ``ids`` (the CSV's
     ``file`` column): by id when the shards carry ids, else by order. Rows without a
-    descriptor are zero and not ok. For small sources; maps/build_descriptors.py streams large
+    descriptor are zero and not ok. For small sources; mapping/build_descriptors.py streams large
     ones."""
     feats = np.zeros((len(ids), source.dim), np.float32)
     ok = np.zeros(len(ids), bool)

@@ -1,6 +1,6 @@
 """One edit of a map folder at a time, and its commit: files under new names, then the
 manifest (``os.replace``, the commit point); a rollback deletes what the edit wrote.
-See :mod:`vlm_vpr_ros.maps.edit` for the generation scheme."""
+See :mod:`vlm_vpr_ros.mapping.edit` for the generation scheme."""
 
 from __future__ import annotations
 

@@ -10,7 +10,7 @@ from typing import Any, Callable, Mapping
 
 from vlm_vpr_ros.config import choose
 from vlm_vpr_ros.errors import ConfigError
-from vlm_vpr_ros.priors.base import Prior, PriorProvider, PriorQuery, PriorResult
+from vlm_vpr_ros.priors.provider import Prior, PriorProvider, PriorQuery, PriorResult
 from vlm_vpr_ros.priors.simple import FixedPrior, NoPrior, RecordedPrior
 
 __all__ = [

@@ -7,8 +7,9 @@ import math
 import os
 
 from vlm_vpr_ros.errors import PriorError
+from vlm_vpr_ros.files.csvio import read_rows, strict_float, unique_rows
 from vlm_vpr_ros.geodesy import valid_latlon
-from vlm_vpr_ros.priors.base import KeyedTable, Prior, PriorProvider, PriorQuery, PriorResult
+from vlm_vpr_ros.priors.provider import KeyedTable, Prior, PriorProvider, PriorQuery, PriorResult
 
 log = logging.getLogger(__name__)
 
@@ -45,8 +46,6 @@ def read_prior_csv(path: str | os.PathLike[str]) -> dict[str, tuple[float, float
     """Read a ``file, lat, lon`` CSV into {file: (lat, lon)}; blank/invalid rows and (0, 0)
     placeholders are skipped (counted in a warning); a file repeated with other coordinates is
     a DataError."""
-    from vlm_vpr_ros.files.csvio import read_rows, strict_float, unique_rows
-
     items = []
     bad = 0
     for n, row in read_rows(path, "priors CSV", ("file", "lat", "lon"))[1]:

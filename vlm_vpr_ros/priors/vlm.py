@@ -31,9 +31,10 @@ import numpy as np
 
 from vlm_vpr_ros.config import choose
 from vlm_vpr_ros.errors import ConfigError, DataError, ImageDecodeError
+from vlm_vpr_ros.files.csvio import read_rows, unique_rows
 from vlm_vpr_ros.files.images import check_rgb, decode_image_bytes, encode_jpeg
 from vlm_vpr_ros.priors import register_prior_provider
-from vlm_vpr_ros.priors.base import KeyedTable, Prior, PriorProvider, PriorQuery, PriorResult
+from vlm_vpr_ros.priors.provider import KeyedTable, Prior, PriorProvider, PriorQuery, PriorResult
 from vlm_vpr_ros.priors.cache import AnswerCache, cache_key, image_digest
 from vlm_vpr_ros.priors.keys import read_api_key
 from vlm_vpr_ros.priors.openai_client import CallHandle, ChatClient, ChatReply
@@ -338,8 +339,6 @@ def read_answers_csv(path: str | os.PathLike[str]) -> dict[str, str]:
     """{filename: raw response} from a CSV with columns ``filename, response`` (others
     ignored; ``file`` is accepted for ``filename``). A file answered twice with different
     responses is a DataError naming both lines."""
-    from vlm_vpr_ros.files.csvio import read_rows, unique_rows
-
     cols, rows = read_rows(path, "answers CSV")
     fcol = "filename" if "filename" in cols else "file" if "file" in cols else None
     if fcol is None or "response" not in cols:

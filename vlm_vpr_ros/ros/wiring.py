@@ -3,7 +3,7 @@
 :class:`_Wiring` is mixed into an rclpy ``Node`` or ``LifecycleNode``; its steps are the
 lifecycle transitions: parameters (constructor, :mod:`vlm_vpr_ros.ros.parameters`), ``_load``
 (configure), ``_start`` (activate), ``_stop`` (deactivate), ``_unload`` (cleanup). What goes out
-for a query is :mod:`vlm_vpr_ros.ros.outputs`.
+for a query is :mod:`vlm_vpr_ros.ros.publishers`.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from msg_adapters.image import encoded_bytes, message_to_rgb, stamp_ns
 from vlm_vpr_ros.errors import ConfigError, MapError
 from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
 from vlm_vpr_ros.priors import create_prior_provider
-from vlm_vpr_ros.ros.outputs import Outputs, fix_policy
+from vlm_vpr_ros.ros.publishers import Outputs, fix_policy
 from vlm_vpr_ros.ros.parameters import _Parameters
 from vlm_vpr_ros.runtime.params import NodeConfig
 from vlm_vpr_ros.runtime.stats import RuntimeStats, Throttle

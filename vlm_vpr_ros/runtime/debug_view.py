@@ -26,6 +26,7 @@ import numpy as np
 
 from vlm_vpr_ros.errors import VlmVprError
 from vlm_vpr_ros.files.images import encode_jpeg, load_image
+from vlm_vpr_ros.maps.map_images import images_folder
 
 log = logging.getLogger(__name__)
 PANEL_HEIGHT = 360  # px: both images are scaled to this height
@@ -47,8 +48,6 @@ class ReferenceImages:
                 override: str = "") -> "ReferenceImages":
         """``override`` when given, else the map's own images folder when it keeps one
         (:func:`vlm_vpr_ros.maps.map_images.images_folder`, as verification looks)."""
-        from vlm_vpr_ros.maps.map_images import images_folder
-
         return cls(images_folder(map_path, manifest, override))
 
     def load(self, ref_id: str) -> tuple[np.ndarray, float] | None:

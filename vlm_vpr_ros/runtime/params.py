@@ -23,10 +23,12 @@ import os
 from dataclasses import dataclass, field
 from typing import Any, Mapping
 
+from vlm_vpr_ros.config import choose
 from vlm_vpr_ros.errors import ConfigError
 from vlm_vpr_ros.localization.localizer import FUSION_MODES, LocalizerConfig
 from vlm_vpr_ros.localization.verification.stage import VerificationConfig
 from vlm_vpr_ros.localization.verification.status import FALLBACK_STATUS, MAX_SIGMA_M, StatusPolicy
+from vlm_vpr_ros.priors import available_prior_providers
 from vlm_vpr_ros.runtime.worker import MODES
 
 QOS_CHOICES = ("sensor_data", "best_effort", "reliable")
@@ -314,8 +316,6 @@ def validate(cfg: NodeConfig, check_paths: bool = True) -> None:
                                     f"got {v}")
         if spec.choices is not None:
             _choice(spec.name, v, spec.choices)
-    from vlm_vpr_ros.priors import available_prior_providers
-    from vlm_vpr_ros.config import choose
 
     choose(cfg.prior_provider, available_prior_providers(), "prior provider")
 

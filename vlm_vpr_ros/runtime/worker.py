@@ -5,9 +5,9 @@ undecoded message in a one-frame slot (a newer frame replaces an unused one: *dr
 counted). One worker thread takes frames when a query is due — every ``min_period_s`` in
 ``continuous`` mode, on :meth:`QueryRuntime.request_relocalize` in both modes (kinds of requests:
 :mod:`vlm_vpr_ros.runtime.relocalize`) — decodes the
-frame, starts the prior request (asynchronous, see :mod:`vlm_vpr_ros.priors.base`), computes the
-descriptor meanwhile, waits for the prior at most ``prior_timeout_s``, localizes (flagged global
-retrieval when the prior failed) and hands a :class:`QueryOutcome` to ``on_outcome``. Nothing
+frame, starts the prior request (asynchronous, see :mod:`vlm_vpr_ros.priors.provider`), computes
+the descriptor meanwhile, waits for the prior at most ``prior_timeout_s``, localizes (flagged
+global retrieval when the prior failed) and hands a :class:`QueryOutcome` to ``on_outcome``. Nothing
 here queues more than one frame and one pending relocalization per kind.
 
 Runtime tuning: :meth:`QueryRuntime.update` swaps the rate/timeout settings and the localizer's
@@ -34,7 +34,7 @@ import numpy as np
 from vlm_vpr_ros.errors import ConfigError, ImageDecodeError, VlmVprError
 from vlm_vpr_ros.localization.localizer import LocalizerConfig
 from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
-from vlm_vpr_ros.priors.base import PriorProvider, PriorQuery, PriorResult
+from vlm_vpr_ros.priors.provider import PriorProvider, PriorQuery, PriorResult
 from vlm_vpr_ros.runtime import debug_view
 from vlm_vpr_ros.runtime.relocalize import (RelocalizeKind, RelocalizeTicket,
                                             outcome_summary)
@@ -406,7 +406,7 @@ class QueryRuntime:
     def _request_prior(self, query: PriorQuery) -> "cf.Future[PriorResult]":
         try:
             return self.provider.request(query)
-        except Exception as exc:  # noqa: BLE001 - failures are values (priors/base.py)
+        except Exception as exc:  # noqa: BLE001 - failures are values (priors/provider.py)
             fut: cf.Future[PriorResult] = cf.Future()
             fut.set_result(PriorResult.failure(self.provider.name, f"error: {exc}"))
             return fut

@@ -18,7 +18,7 @@ import torch
 import torch.nn.functional as F
 
 from vlm_vpr_ros.config import from_mapping
-from vlm_vpr_ros.descriptors.base import GlobalDescriptor, l2_normalize
+from vlm_vpr_ros.descriptors.global_descriptor import GlobalDescriptor, l2_normalize
 from vlm_vpr_ros.descriptors.deep import weights as W
 from vlm_vpr_ros.descriptors.deep.specs import IMAGENET_MEAN, IMAGENET_STD, ModelSpec
 from vlm_vpr_ros.errors import ConfigError, DescriptorError

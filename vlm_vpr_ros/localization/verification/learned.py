@@ -27,10 +27,13 @@ from typing import Any, Mapping
 import numpy as np
 
 from vlm_vpr_ros.config import from_mapping
+from vlm_vpr_ros.descriptors.deep.weights import (check_state_dict, file_sha256,
+                                                  hub_checkpoint_dir, read_state_dict)
 from vlm_vpr_ros.errors import ConfigError, DescriptorError
-from vlm_vpr_ros.localization.verification.base import (Component, LocalFeatureExtractor,
-                                                        LocalFeatures, Matcher,
-                                                        register_feature, register_matcher)
+from vlm_vpr_ros.files.images import check_rgb
+from vlm_vpr_ros.localization.verification.components import (Component, LocalFeatureExtractor,
+                                                              LocalFeatures, Matcher,
+                                                              register_feature, register_matcher)
 
 log = logging.getLogger(__name__)
 DISK_RELEASE = "depth-save.pth"
@@ -40,8 +43,6 @@ LIGHTGLUE_DISK = {"input_dim": 128, "descriptor_dim": 256, "n_layers": 9, "num_h
 
 
 def _weights_path(weights: str, release: str, what: str) -> Path:
-    from vlm_vpr_ros.descriptors.deep.weights import hub_checkpoint_dir
-
     path = Path(weights).expanduser() if weights else hub_checkpoint_dir() / release
     if not path.is_file():
         where = "" if weights else " (no weights=PATH given; looked in the torch hub cache)"
@@ -54,9 +55,6 @@ def _weights_path(weights: str, release: str, what: str) -> Path:
 def load_checkpoint(model: Any, path: Path, what: str, rename: bool = False) -> str:
     """Load ``path`` into ``model`` (weights_only, strict, every key checked); returns the
     file's sha256. ``rename``: map the official LightGlue names to kornia's."""
-    from vlm_vpr_ros.descriptors.deep.weights import (check_state_dict, file_sha256,
-                                                      read_state_dict)
-
     state = read_state_dict(path, f"{what} checkpoint")
     if rename:
         state = {re.sub(r"^(self_attn|cross_attn)\.(\d+)\.", r"transformers.\2.\1.", k): v
@@ -108,8 +106,6 @@ class DiskFeature(LocalFeatureExtractor):
 
     def extract(self, image: np.ndarray, max_keypoints: int) -> LocalFeatures:
         import cv2
-
-        from vlm_vpr_ros.files.images import check_rgb
 
         torch = self._torch
         rgb = check_rgb(image)

@@ -21,9 +21,9 @@ import numpy as np
 from vlm_vpr_ros.config import from_mapping
 from vlm_vpr_ros.errors import ConfigError
 from vlm_vpr_ros.descriptors.local_sift import gray_frame, sift_detect, strongest_first
-from vlm_vpr_ros.localization.verification.base import (Component, LocalFeatureExtractor,
-                                                        LocalFeatures, Matcher,
-                                                        register_feature, register_matcher)
+from vlm_vpr_ros.localization.verification.components import (Component, LocalFeatureExtractor,
+                                                              LocalFeatures, Matcher,
+                                                              register_feature, register_matcher)
 
 
 @dataclass(frozen=True)
