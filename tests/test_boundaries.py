@@ -190,6 +190,18 @@ LAZY_PROJECT = {
         "imports torch (optional, heavy) at module level",
     ("vlm_vpr_ros.maps.sources", "vlm_vpr_ros.descriptors.deep.torch_descriptor"):
         "imports torch (optional, heavy) at module level",
+    # OpenCV (~0.5 s to import) is loaded only by the steps that decode or match images: the
+    # query pipeline without a query image (precomputed descriptors) and a build from
+    # precomputed descriptors never load it
+    ("vlm_vpr_ros.localization.verification.stage", "vlm_vpr_ros.files.images"):
+        "imports cv2 at module level (reference images of a map without stored features)",
+    ("vlm_vpr_ros.localization.verification.stage", "vlm_vpr_ros.localization.verification.sift"):
+        "imports cv2 at module level (only for a query's SIFT pass)",
+    ("vlm_vpr_ros.localization.query_descriptors", "vlm_vpr_ros.files.images"):
+        "imports cv2 at module level (only when query images are given)",
+    ("vlm_vpr_ros.mapping.build_descriptors", "vlm_vpr_ros.mapping.build_images"):
+        "the image build imports cv2 and the local features; a build from precomputed "
+        "descriptors needs only its CSV reader",
 }
 
 

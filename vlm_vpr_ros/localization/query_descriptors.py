@@ -14,7 +14,6 @@ from typing import Any, Iterator, Sequence
 
 import numpy as np
 
-from vlm_vpr_ros.files.images import load_image
 from vlm_vpr_ros.localization.batch import result_row, started_ahead
 from vlm_vpr_ros.errors import DataError, ImageDecodeError, VlmVprError
 from vlm_vpr_ros.localization.localizer import Localizer
@@ -54,6 +53,8 @@ def localize_descriptors(localizer: Localizer, provider: PriorProvider, files: S
         f = item[1]
         query = PriorQuery(key=f)
         if images_dir is not None:
+            from vlm_vpr_ros.files.images import load_image
+
             try:
                 path = Path(images_dir) / f
                 query = PriorQuery(image=load_image(path), encoded=path.read_bytes(), key=f)

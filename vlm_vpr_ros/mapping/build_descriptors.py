@@ -26,7 +26,6 @@ from vlm_vpr_ros.errors import DataError, MapError
 from vlm_vpr_ros.files.atomic import atomic_save_npz, atomic_write_json
 from vlm_vpr_ros.geodesy import farthest_km
 from vlm_vpr_ros.mapping.assemble import plan_kinds
-from vlm_vpr_ros.mapping.build_images import read_coords_csv
 from vlm_vpr_ros.maps import indexes
 from vlm_vpr_ros.mapping.balance import split_large
 from vlm_vpr_ros.maps.format import MANIFEST, MAP_FORMAT, METRIC, content_matches
@@ -259,6 +258,8 @@ def build_from_descriptors(source_path: str | Path, coords_csv: str | Path,
     """Build (or resume) a v2 map from precomputed descriptors; returns the opened map.
     Built in ``.OUT.partial/`` beside ``out_dir`` and swapped in when complete
     (:mod:`vlm_vpr_ros.files.outputs`): an old map stays until then."""
+    from vlm_vpr_ros.mapping.build_images import read_coords_csv
+
     t0 = time.monotonic()
     out_dir = Path(out_dir)
     indexes.check_kind(index)

@@ -23,7 +23,6 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from vlm_vpr_ros.errors import ConfigError, DescriptorError, ImageDecodeError, MapError
-from vlm_vpr_ros.files.images import load_image
 from vlm_vpr_ros.geodesy import haversine_km
 from vlm_vpr_ros.localization.verification.components import (LocalFeatureExtractor, Matcher,
                                                               create_feature, create_matcher,
@@ -32,7 +31,6 @@ from vlm_vpr_ros.localization.verification.p_correct import PCorrect, load_doc, 
 from vlm_vpr_ros.localization.verification.evidence import EvidenceConfig, spread_radii, weigh
 from vlm_vpr_ros.localization.verification.geometry import GeometryConfig, fundamental_inliers
 from vlm_vpr_ros.localization.verification.presets import preset_for_map
-from vlm_vpr_ros.localization.verification.sift import RootSift
 from vlm_vpr_ros.maps.features import FeatureStore
 from vlm_vpr_ros.config import from_mapping
 from vlm_vpr_ros.maps.map_images import images_folder
@@ -198,6 +196,8 @@ class Verifier:
         return self.extractor.extract(image, self.preset.query_max_keypoints)
 
     def query_features_from_sift(self, sift_pass: tuple) -> LocalFeatures:
+        from vlm_vpr_ros.localization.verification.sift import RootSift
+
         xy, des, resp, scale, size = sift_pass
         return RootSift.from_pass(xy, des, resp, size, scale, self.preset.query_max_keypoints)
 
@@ -208,6 +208,8 @@ class Verifier:
         return [self._from_image(c.ref_id) for c in candidates]
 
     def _from_image(self, ref_id: str) -> LocalFeatures | None:
+        from vlm_vpr_ros.files.images import load_image
+
         with self._lock:
             if ref_id in self._cache:
                 self._cache.move_to_end(ref_id)
