@@ -319,16 +319,18 @@ def format_report(rep: dict, title: str = "integrity") -> str:
 
 
 def write_report(out_dir: str | os.PathLike[str], rep: dict, trials: Sequence[Trial],
-                 title: str = "", overwrite: bool = False, staged: bool = True) -> dict:
+                 title: str = "", overwrite: bool = False, staged: bool = True,
+                 final_dir: str | os.PathLike[str] | None = None) -> dict:
     """``integrity.json`` and ``stanford.png`` in ``out_dir``; returns ``{name: path}``.
     ``staged``: build a new folder beside ``out_dir`` and swap it in (an existing folder is
     replaced only with ``overwrite`` and only when it is an earlier evaluation); otherwise
-    ``out_dir`` is a folder being built already (evaluate-bag's staging folder)."""
+    ``out_dir`` is a folder being built already (evaluate-bag's staging folder) that becomes
+    ``final_dir`` (the paths returned and written into the JSON)."""
     from vlm_vpr_ros.evaluation.integrity_plot import plot_stanford
     from vlm_vpr_ros.files.atomic import atomic_write_json
     from vlm_vpr_ros.files.outputs import StagedOutput
 
-    final = Path(out_dir)
+    final = Path(out_dir if staged or final_dir is None else final_dir)
 
     def write(folder: Path) -> dict:
         png = plot_stanford(folder / PNG_NAME, trials, rep["alert_limit_m"], title)
@@ -338,20 +340,25 @@ def write_report(out_dir: str | os.PathLike[str], rep: dict, trials: Sequence[Tr
         return paths
 
     if not staged:
-        return write(final)
+        return write(Path(out_dir))
     with StagedOutput(final, "evaluation", overwrite, marker=True) as stage:
         paths = write(stage.path)
         stage.commit()
     return paths
 
 
-def evaluate_integrity(results_csv: str | os.PathLike[str], truth: dict[str, LatLon],
+def evaluate_integrity(results_csv: str | os.PathLike[str],
+                       truth: str | os.PathLike[str] | dict[str, LatLon],
                        alert_limit_m: float = DEFAULT_ALERT_LIMIT_M,
                        out_dir: str | os.PathLike[str] | None = None,
                        overwrite: bool = False) -> dict:
     """``vlm-vpr evaluate``'s integrity report of a results CSV; with ``out_dir`` its JSON and
     Stanford diagram are written there (an existing folder without ``overwrite``: a warning,
-    nothing written, ``outputs`` empty)."""
+    nothing written, ``outputs`` empty). ``truth``: the ground-truth CSV or its rows."""
+    if not isinstance(truth, dict):
+        from vlm_vpr_ros.evaluation.metrics import read_ground_truth
+
+        truth = read_ground_truth(truth)
     trials, info = read_trials(results_csv, truth)
     rep = integrity_report(trials, alert_limit_m, pl_column=info["pl_column"],
                            pl_invalid=info["pl_invalid"])
