@@ -388,3 +388,53 @@ def trials_from_frames(rows: Iterable[dict]) -> list[Trial]:
                          protection_value(r.get("protection_m")),
                          None if t is None else t / 1e9, str(r.get("key") or "")))
     return out
+
+
+#: columns of the summary table (demo, docs): one row per run
+TABLE_COLUMNS = ["", "answers", "fixes", "avail.", "fix err 50%", "fix err 95%", "PL median",
+                 "nominal", "MI", "HMI", "unavail.", "err > PL", "fix > AL", "HMI scenes"]
+
+
+def summary_cells(reports: dict[str, dict]) -> tuple[list[str], list[list[str]]]:
+    """Header and rows (strings) of a one-row-per-run integrity table (``-``: not available)."""
+    def m(x: float | None) -> str:
+        return "-" if x is None else f"{x:.1f} m"
+
+    body = []
+    for name, r in reports.items():
+        pl, reg = r["protection_level"]["available"], r["regions"]
+        avail = r["availability_pct"]
+        cells = [name, str(r["answers"]), str(r["fixes"]),
+                 "-" if avail is None else f"{avail:.1f}%", m(r["accuracy_m"]["p50"]),
+                 m(r["accuracy_m"]["p95"]), m(r["protection_level"]["median_m"])]
+        cells += ([str(reg[k]) for k in REGIONS] + [str(r["error_gt_pl"]["count"])] if pl
+                  else ["-"] * 5)
+        cells += [str(r["error_gt_al"]["count"]),
+                  str(r["scenes"]["hmi"]["count"]) if pl else "-"]
+        body.append(cells)
+    return list(TABLE_COLUMNS), body
+
+
+def demo_integrity(out_dir: str | os.PathLike[str], truth_csv: str | os.PathLike[str],
+                   runs: dict[str, str | os.PathLike[str]],
+                   alert_limit_m: float = DEFAULT_ALERT_LIMIT_M) -> dict:
+    """The demo's integrity step: a report per verified run (``label -> results CSV``), the
+    summary table and the first run's Stanford diagram in ``out_dir`` (replaced on re-runs)."""
+    from vlm_vpr_ros.evaluation.metrics import read_ground_truth
+
+    truth = read_ground_truth(truth_csv)
+    reports, first = {}, None
+    for label, path in runs.items():
+        trials, info = read_trials(path, truth)
+        reports[label] = integrity_report(trials, alert_limit_m, pl_column=info["pl_column"],
+                                          pl_invalid=info["pl_invalid"])
+        first = first or (label, trials)
+    head, body = summary_cells(reports)
+    outputs = {}
+    if first is not None:
+        outputs = write_report(out_dir, reports[first[0]], first[1], f"demo: {first[0]}",
+                               overwrite=True)
+    return {"alert_limit_m": alert_limit_m, "reports": reports, "outputs": outputs,
+            "table": {"title": f"Integrity of the verified runs (alert limit "
+                               f"{alert_limit_m:g} m; docs/evaluation.md)",
+                      "columns": head, "rows": body}}
