@@ -84,6 +84,8 @@ def test_regions_and_counts_against_brute_force():
     assert rep["accuracy_m"]["max"] == pytest.approx(300.0, abs=0.1)
     pls = sorted(c[1] for c in fixes if c[1] is not None)
     assert rep["protection_level"]["median_m"] == pls[math.ceil(0.5 * len(pls)) - 1]
+    assert rep["fixes_pl_at_or_above_al"] == sum(c[2] == "fix" and c[1] is not None
+                                                 and c[1] >= 50 for c in CASES) == 2
     assert rep["scenes"]["source"] == "key" and rep["scenes"]["n"] == 13
     assert rep["time"] is None
     # the printed table names the regions and both HMI counts

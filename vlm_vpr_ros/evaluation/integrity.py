@@ -180,6 +180,9 @@ def integrity_report(trials: Sequence[Trial], alert_limit_m: float = DEFAULT_ALE
         "protection_level": {"available": bool(has_pl), "fixes_with_pl": len(pls),
                              "median_m": _r(nearest_rank(pls, 50)), "invalid_values": pl_invalid},
         "regions": counts,
+        # published as FIX although PL >= AL: in "unavailable" (DO-229), named apart
+        "fixes_pl_at_or_above_al": sum(t.protection_m is not None and t.protection_m >= al
+                                       for t in fixes),
         "hmi": {"count": len(hmi), "per_fix": _rate(len(hmi), n_fix)},
         "error_gt_pl": {"count": len(gt_pl), "per_fix": _rate(len(gt_pl), n_fix)},
         "error_gt_al": {"count": len(gt_al), "per_fix": _rate(len(gt_al), n_fix)},
@@ -282,6 +285,9 @@ def report_rows(rep: dict) -> list[list[str]]:
         rows += [["protection level of fixes: median", fmt(pl["median_m"])],
                  [f"regions (AL {al:g} m): nominal / MI / HMI / unavailable",
                   " / ".join(str(reg[k]) for k in REGIONS)]]
+        if rep["fixes_pl_at_or_above_al"]:
+            rows.append([f"  of them fixes with PL >= {al:g} m (FIX, yet unavailable)",
+                         str(rep["fixes_pl_at_or_above_al"])])
         if reg["no_pl"] or pl["invalid_values"]:
             rows.append(["fixes without a usable PL (junk PL values)",
                          f"{reg['no_pl']} ({pl['invalid_values']})"])
