@@ -31,7 +31,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable, Iterator, Sequence
 
-from vlm_vpr_ros.errors import ConfigError, DataError, OutputError
+from vlm_vpr_ros.errors import ConfigError, DataError
 from vlm_vpr_ros.files.csvio import strict_float
 from vlm_vpr_ros.geodesy import haversine_km
 
@@ -198,11 +198,11 @@ def _r(x: float | None) -> float | None:
 def _scenes(scored: Sequence[Trial], bad: dict[str, list[Trial]]) -> dict:
     of = {id(t): scene_of(t) for t in scored}
     sources = sorted({s for s, _ in of.values()})
-    all_ids = {of[id(t)][1] for t in scored}
-    with_fix = {of[id(t)][1] for t in scored if t.fix}
+    all_ids = set(of.values())  # (source, id): a key never equals a cell by accident
+    with_fix = {of[id(t)] for t in scored if t.fix}
     out = {"source": "+".join(sources) or "none", "n": len(all_ids), "with_fix": len(with_fix)}
     for name, items in bad.items():
-        ids = {of[id(t)][1] for t in items}
+        ids = {of[id(t)] for t in items}
         out[name] = {"count": len(ids), "per_scene_with_fix": _rate(len(ids), len(with_fix))}
     return out
 
@@ -373,7 +373,7 @@ def evaluate_integrity(results_csv: str | os.PathLike[str],
         try:
             rep["outputs"] = write_report(out_dir, rep, trials, Path(results_csv).name,
                                           overwrite)
-        except OutputError as exc:
+        except OSError as exc:  # OutputError included: the printed report still stands
             log.warning("integrity files not written: %s", exc)
     return rep
 
