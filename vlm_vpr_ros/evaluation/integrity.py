@@ -153,8 +153,9 @@ def _rate(n: int, d: int) -> float | None:
 def integrity_report(trials: Sequence[Trial], alert_limit_m: float = DEFAULT_ALERT_LIMIT_M,
                      t_start: float | None = None, t_end: float | None = None,
                      pl_column: bool | None = None, pl_invalid: int = 0) -> dict:
-    """The integrity numbers of ``trials`` (JSON-ready). ``pl_column``: whether the input had a
-    protection_m column (None: judged from the trials); ``pl_invalid``: junk PL values seen."""
+    """The integrity numbers of ``trials`` (JSON-ready). The protection level is available when
+    any trial has a usable one; ``pl_column``: whether the input had a protection_m column
+    (reported; None: unknown); ``pl_invalid``: junk PL values seen."""
     al = check_alert_limit(alert_limit_m)
     trials = list(trials)
     scored = [t for t in trials if t.error_m is not None]
@@ -164,7 +165,7 @@ def integrity_report(trials: Sequence[Trial], alert_limit_m: float = DEFAULT_ALE
     for t in scored:
         counts[region(t, al)] += 1
     pls = [t.protection_m for t in fixes if t.protection_m is not None]
-    has_pl = any(t.protection_m is not None for t in trials) if pl_column is None else pl_column
+    has_pl = any(t.protection_m is not None for t in trials)
     gt_pl = [t for t in fixes if t.protection_m is not None and t.error_m > t.protection_m]
     gt_al = [t for t in fixes if t.error_m > al]
     hmi = [t for t in scored if region(t, al) == "hazardously_misleading"]
@@ -177,8 +178,9 @@ def integrity_report(trials: Sequence[Trial], alert_limit_m: float = DEFAULT_ALE
                              if trials else None),
         "accuracy_m": {"p50": _r(nearest_rank(errs, 50)), "p95": _r(nearest_rank(errs, 95)),
                        "max": _r(max(errs) if errs else None)},
-        "protection_level": {"available": bool(has_pl), "fixes_with_pl": len(pls),
-                             "median_m": _r(nearest_rank(pls, 50)), "invalid_values": pl_invalid},
+        "protection_level": {"available": has_pl, "column": pl_column,
+                             "fixes_with_pl": len(pls), "median_m": _r(nearest_rank(pls, 50)),
+                             "invalid_values": pl_invalid},
         "regions": counts,
         # published as FIX although PL >= AL: in "unavailable" (DO-229), named apart
         "fixes_pl_at_or_above_al": sum(t.protection_m is not None and t.protection_m >= al
@@ -296,7 +298,10 @@ def report_rows(rep: dict) -> list[list[str]]:
                  ["error > PL while FIX (issue 27 HMI), per fix",
                   f"{rep['error_gt_pl']['count']} ({_pct(rep['error_gt_pl']['per_fix'])})"]]
     else:
-        rows.append(["protection level", "not available (no protection_m column)"])
+        why = ("no protection_m column" if pl["column"] is False else
+               f"no usable value; {pl['invalid_values']} junk" if pl["invalid_values"] else
+               "no value")
+        rows.append(["protection level", f"not available ({why})"])
     rows.append([f"fixes > {al:g} m off, per fix",
                  f"{rep['error_gt_al']['count']} ({_pct(rep['error_gt_al']['per_fix'])})"])
     per = ("HMI / error > PL / > AL" if pl["available"] else f"fixes > {al:g} m off")
