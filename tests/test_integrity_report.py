@@ -329,3 +329,37 @@ def test_evaluate_bag_writes_the_report(demo_map, demo_data, tmp_path):
     assert doc["outputs"]["stanford_png"] == out["stanford_png"]
     summary = json.loads((tmp_path / "ev" / "summary.json").read_text())
     assert summary["integrity"]["regions"] == rep["regions"]
+
+
+def _soak_module():
+    import importlib.util
+    import sys
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "soak_node.py"
+    spec = importlib.util.spec_from_file_location("soak_node", path)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["soak_node"] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_soak_protection_level_from_covariance_and_frames():
+    """The soak's assumed relation PL = k σ: a circular 2-D Gaussian leaves PL with probability
+    1e-3 (Monte Carlo); junk covariances give None; frames fit inside 640x480."""
+    import numpy as np
+
+    soak = _soak_module()
+    sigma = 10.0
+    pl = soak.protection_from_covariance([sigma ** 2, 0, 0, 0, 4.0, 0, 0, 0, 1e6])
+    r = np.hypot(*np.random.default_rng(0).normal(0.0, sigma, (2, 2_000_000)))
+    assert np.mean(r > pl) == pytest.approx(1e-3, rel=0.1)
+    for bad in (None, [], [float("nan")] * 9, [-1.0] * 9, ["x"] * 9):
+        assert soak.protection_from_covariance(bad) is None
+    assert soak.fit_inside(np.zeros((1024, 679, 3), np.uint8)).shape == (480, 318, 3)
+    assert soak.fit_inside(np.zeros((679, 1024, 3), np.uint8)).shape == (424, 640, 3)
+    assert soak.fit_inside(np.zeros((100, 50, 3), np.uint8)).shape == (100, 50, 3)
+    trace = [(0.0, 100.0), (10.0, 200.0), (120.0, 220.0), (300.0, 230.0), (310.0, 240.0),
+             (320.0, 250.0)]
+    rss = soak.rss_summary(trace)
+    assert rss["baseline_mib"] == 210.0 and rss["end_mib"] == 240.0
+    assert rss["change_pct"] == pytest.approx(100 * 30 / 210, abs=0.01)
