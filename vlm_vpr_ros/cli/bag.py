@@ -71,7 +71,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description="Reads images and NavSatFix ground truth from the bag, "
                                    "localizes every frame (default --fusion posterior, as the "
                                    "node), writes frames.csv, summary.json, world_map.png, "
-                                   "error_cdf.png and an estimates bag.")
+                                   "error_cdf.png, the integrity report (integrity.json, "
+                                   "stanford.png) and an estimates bag.")
     e.add_argument("bag", metavar="BAG")
     e.add_argument("--map", required=True, metavar="MAP")
     _frame_args(e)
