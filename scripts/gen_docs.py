@@ -43,7 +43,9 @@ SOURCES = {"demo": "demo_out/demo.json",  # make demo
 #: figures copied into docs/ with their source's tables: source -> {JSON "figures" key: file}
 FIGURES = {"demo": {"lookalike_contact_sheet_png": "docs/demo_contact_sheet.png",
                     "lookalike_error_cdf_png": "docs/demo_error_cdf.png",
-                    "world_map_png": "docs/demo_world_map.png"}}
+                    "world_map_png": "docs/demo_world_map.png",
+                    # the integrity step's Stanford diagram (docs/evaluation.md "Integrity")
+                    "stanford_png": "docs/demo_stanford.png"}}
 BLOCK = re.compile(r"(?P<open><!-- table: (?P<source>\S+) (?P<key>\S+) -->)\n"
                    r"(?P<body>.*?)(?P<close><!-- /table -->)", re.S)
 

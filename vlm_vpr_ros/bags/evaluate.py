@@ -22,6 +22,7 @@ from vlm_vpr_ros.bags.frames import Frame, GroundTruth, iter_frames, read_ground
 from vlm_vpr_ros.bags.reader import BagReader
 from vlm_vpr_ros.errors import BagError, VlmVprError
 from vlm_vpr_ros.files.csvio import write_csv_atomic
+from vlm_vpr_ros.evaluation.integrity import integrity_report, trials_from_frames, write_report
 from vlm_vpr_ros.evaluation.metrics import errors_km, fix_metrics, summarize
 from vlm_vpr_ros.files.atomic import atomic_write_json
 from vlm_vpr_ros.priors.provider import PriorProvider, PriorQuery, wait_prior
@@ -33,7 +34,7 @@ FRAME_FIELDS = ["index", "stamp", "stamp_ns", "key", "gt_lat", "gt_lon", "gt_gap
                 "lon", "error_km", "prior_lat", "prior_lon", "prior_source", "prior_reason",
                  "prior_parse", "submap", "ref_id", "uncertainty_m", "radius95_m", "fusion",
                  "n_candidates", "flags", "status", "p_correct", "inliers", "descriptor_ms",
-                 "retrieval_ms", "rerank_ms", "verify_ms", "prior_latency_s"]
+                 "retrieval_ms", "rerank_ms", "verify_ms", "prior_latency_s", "protection_m"]
 EST_TOPIC, PRIOR_TOPIC, GT_TOPIC = "/vlm_vpr/fix", "/vlm_vpr/prior", "/vlm_vpr/ground_truth"
 FRAME_ID = "vlm_vpr"
 
@@ -46,6 +47,7 @@ class BagEvalConfig:
     max_frames: int | None = None
     prior_timeout_s: float = 60.0
     window: int = 4  # prior requests in flight ahead of the descriptor work
+    alert_limit_m: float = 50.0  # of the integrity report (docs/evaluation.md "Integrity")
 
 
 def stamp_text(stamp_ns: int) -> str:
@@ -140,6 +142,11 @@ def _evaluate(bag: BagReader, pipeline: Any, provider: PriorProvider, out: Path,
     summary = {**summarize(errs),
                "fixes": fix_metrics([r["status"] for r in scored], errs)}
     outputs = {"frames_csv": "frames.csv", "summary_json": "summary.json"}
+    summary["integrity"], trials = _integrity(rows, cfg.alert_limit_m)
+    if plots:
+        outputs.update({k: Path(v).name for k, v in write_report(
+            out, summary["integrity"], trials, bag.path.name, staged=False,
+            final_dir=final).items()})
     if est_msgs:
         _write_estimates(out / "estimates", est_msgs)
         outputs["estimates_bag"] = "estimates"
@@ -157,6 +164,12 @@ def _evaluate(bag: BagReader, pipeline: Any, provider: PriorProvider, out: Path,
     result = {**summary, "details": details}
     atomic_write_json(out / "summary.json", result)
     return result
+
+
+def _integrity(rows: list[dict], alert_limit_m: float) -> tuple[dict, list]:
+    """The integrity report of every frame (time from the frame stamps: TTFF, gaps)."""
+    trials = trials_from_frames(rows)
+    return integrity_report(trials, alert_limit_m), trials
 
 
 def _localize_frame(frame: Frame, fut: Any, pipeline: Any, provider: PriorProvider,

@@ -11,6 +11,7 @@ from pathlib import Path
 from vlm_vpr_ros.cli.common import (add_descriptor_option_args, add_localizer_args,
                                     add_prior_args, descriptor_options, localizer_config,
                                     make_prior_provider)
+from vlm_vpr_ros.cli.core import add_integrity_args
 
 log = logging.getLogger(__name__)
 
@@ -70,7 +71,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description="Reads images and NavSatFix ground truth from the bag, "
                                    "localizes every frame (default --fusion posterior, as the "
                                    "node), writes frames.csv, summary.json, world_map.png, "
-                                   "error_cdf.png and an estimates bag.")
+                                   "error_cdf.png, the integrity report (integrity.json, "
+                                   "stanford.png) and an estimates bag.")
     e.add_argument("bag", metavar="BAG")
     e.add_argument("--map", required=True, metavar="MAP")
     _frame_args(e)
@@ -81,6 +83,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "complete)")
     e.add_argument("--no-plots", action="store_true")
     e.add_argument("--json", action="store_true", help="print only a JSON object on stdout")
+    add_integrity_args(e, None)
     add_descriptor_option_args(e)
     add_prior_args(e)
     add_localizer_args(e)
@@ -208,6 +211,9 @@ def cmd_evaluate_bag(args: argparse.Namespace) -> int:
 
     from vlm_vpr_ros.bags.messages import IMAGE_TYPES, NAVSATFIX
 
+    from vlm_vpr_ros.evaluation.integrity import check_alert_limit, format_report
+
+    alert_m = check_alert_limit(args.alert_limit_m)
     bag = open_bag(args.bag)
     bag.find_topic(IMAGE_TYPES, args.image_topic, "camera images")  # fail before loading
     bag.find_topic((NAVSATFIX,), args.gt_topic, "ground truth")
@@ -221,7 +227,7 @@ def cmd_evaluate_bag(args: argparse.Namespace) -> int:
     pipe.map.open_submaps()  # a damaged map: exit 2 before the first frame
     cfg = BagEvalConfig(image_topic=args.image_topic, gt_topic=args.gt_topic,
                         max_gt_gap_s=args.max_gt_gap, max_frames=args.max_frames,
-                        prior_timeout_s=args.prior_timeout)
+                        prior_timeout_s=args.prior_timeout, alert_limit_m=alert_m)
     provider = make_prior_provider(args)
     try:
         res = evaluate_bag(bag, pipe, provider, out, cfg, plots=not args.no_plots,
@@ -235,6 +241,7 @@ def cmd_evaluate_bag(args: argparse.Namespace) -> int:
     d = res["details"]
     print(format_table({"estimate": res}, title=f"evaluate-bag {bag.path}: {d['frames']} "
                        f"frames, {d['frames_scored']} with ground truth"))
+    print("\n" + format_report(res["integrity"], "integrity (docs/evaluation.md)"))
     for key, path in d["outputs"].items():
         print(f"{key:>14}: {path}")
     for w in d["warnings"]:

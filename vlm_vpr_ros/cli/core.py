@@ -107,6 +107,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--ground-truth", required=True, metavar="CSV",
                    help="file, lat, lon (or IMG_ID, LAT, LON)")
     p.add_argument("--json", action="store_true", help="print only a JSON object on stdout")
+    add_integrity_args(p, "RESULTS_integrity/ beside the results CSV")
     p.set_defaults(func=cmd_evaluate)
 
     p = sub.add_parser("descriptors", help="list the descriptor presets")
@@ -356,14 +357,20 @@ def _localize_descriptors(args: argparse.Namespace, files: list[str]) -> int:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
+    from vlm_vpr_ros.evaluation import integrity
     from vlm_vpr_ros.evaluation.metrics import evaluate_results_csv, format_table
 
+    alert_m = integrity.check_alert_limit(args.alert_limit_m)
     summary, extra = evaluate_results_csv(args.results, args.ground_truth)
+    integ = integrity.evaluate_integrity(  # docs/evaluation.md "Integrity"
+        args.results, args.ground_truth, alert_m,
+        args.integrity_out or integrity.default_out_dir(args.results), args.overwrite)
     if args.json:
         json.dump({**summary, "recall_pct": extra["recall_pct"], "fixes": extra["fixes"],
                    "coverage68_pct": round(extra["coverage_pct"], 2),
                    "coverage95_pct": (None if extra["coverage95_pct"] is None
-                                      else round(extra["coverage95_pct"], 2))}, sys.stdout)
+                                      else round(extra["coverage95_pct"], 2)),
+                   "integrity": integ}, sys.stdout)
         sys.stdout.write("\n")
         return 0
     print(format_table({"results": summary}, title=f"accuracy of {args.results}"))
@@ -383,7 +390,21 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
                 f"{fx['precision50_pct']:.1f}% within 50 m")
         print(f"fixes (status fix): {fx['n']} of {summary['n']} ({fx['rate_pct']:.1f}%); "
               f"precision {prec}")
+    print("\n" + integrity.format_report(integ, "integrity (docs/evaluation.md)"))
+    for key, path in integ["outputs"].items():
+        print(f"{key:>14}: {path}")
     return 0
+
+
+def add_integrity_args(p: argparse.ArgumentParser, where: str | None) -> None:
+    """``--alert-limit-m`` (and, with ``where``, ``--integrity-out`` / ``--overwrite``)."""
+    p.add_argument("--alert-limit-m", default="50", metavar="M",
+                   help="alert limit of the integrity report (Stanford diagram), m (default 50)")
+    if where is not None:
+        p.add_argument("--integrity-out", default=None, metavar="DIR",
+                       help=f"folder for integrity.json and stanford.png (default: {where})")
+        p.add_argument("--overwrite", action="store_true",
+                       help="replace an earlier integrity folder (default: keep it, warn)")
 
 
 def cmd_descriptors(args: argparse.Namespace) -> int:

@@ -250,7 +250,8 @@ def run_demo(out: str | Path, with_bag: bool = True) -> int:
         figures.update(bag_outputs)
     head, body = fixes_table(tables)
     print("\n" + format_cells(head, body, TITLES["fixes"]) + "\n")
-    _write_json(out, tables, extras, figures, time.monotonic() - t0)
+    integ = _integrity(out, queries, extras, with_bag)
+    _write_json(out, tables, extras, figures, time.monotonic() - t0, integ)
     print(f"done in {time.monotonic() - t0:.0f} s; tables in {out / 'demo.json'}, outputs in "
           f"{out}/")
     return 0
@@ -296,7 +297,23 @@ def _bag_demo(out: Path, map_dir: Path, queries: Path, n_steps: int) -> tuple[di
     return table, {k: v for k, v in info.items() if k.endswith("_png")}
 
 
-def _write_json(out: Path, tables: dict, extras: dict, figures: dict, elapsed: float) -> None:
+def _integrity(out: Path, queries: Path, extras: dict, with_bag: bool) -> dict:
+    """The integrity table (docs/evaluation.md "Integrity") of the verified runs, printed."""
+    from vlm_vpr_ros.evaluation.integrity import demo_integrity
+    from vlm_vpr_ros.evaluation.metrics import format_cells
+
+    runs = {f"{label}: {name}": e["results_csv"] for step, label in FIX_STEPS
+            for name, e in extras[step].items() if name in (FUSED, TRUSTED)}
+    if with_bag:
+        runs["bag: " + FUSED] = out / "bag_demo" / "evaluation" / "frames.csv"
+    integ = demo_integrity(out / "integrity", queries, runs)
+    print(format_cells(integ["table"]["columns"], integ["table"]["rows"],
+                       integ["table"]["title"]) + "\n", flush=True)
+    return integ
+
+
+def _write_json(out: Path, tables: dict, extras: dict, figures: dict, elapsed: float,
+                integrity: dict | None = None) -> None:
     from vlm_vpr_ros.evaluation.metrics import table_cells
     from vlm_vpr_ros.files.atomic import atomic_write_json
 
@@ -310,4 +327,7 @@ def _write_json(out: Path, tables: dict, extras: dict, figures: dict, elapsed: f
         doc["tables"][step] = {"title": TITLES[step], "columns": head, "rows": body}
     head, body = fixes_table(tables)
     doc["tables"]["fixes"] = {"columns": head, "rows": body}  # no title: short README
+    if integrity is not None:  # docs table "demo integrity.table"; figure: stanford_png
+        doc["integrity"] = integrity
+        doc["figures"]["stanford_png"] = integrity["outputs"].get("stanford_png")
     atomic_write_json(out / "demo.json", doc)
