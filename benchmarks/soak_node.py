@@ -85,7 +85,7 @@ def load_queries(root: Path) -> list[tuple[str, tuple[float, float], np.ndarray]
 
 def sf_map(cache: Path, root: Path) -> Path:
     """The SF map (kmeans, 10 clusters, default descriptor), built once into ``cache``."""
-    from vlm_vpr_ros.maps.build_images import build_map
+    from vlm_vpr_ros.mapping.build_images import build_map
 
     out = cache / "sf_map"
     if not (out / "manifest.json").is_file():
