@@ -42,7 +42,7 @@ sys.path.insert(0, str(REPO / "tests"))
 
 from chat_server import ChatServer  # noqa: E402
 from node_harness import GraphClient, NodeProcess, domain_id, image_msg, stamp_of  # noqa: E402
-from vlm_vpr_ros.evaluation import integrity  # noqa: E402
+from vlm_vpr_ros.evaluation import integrity, integrity_tables  # noqa: E402
 from vlm_vpr_ros.files.images import load_image  # noqa: E402
 
 SF = Path(os.environ.get("VLM_VPR_SHARED", REPO.parent / "shared")) / "data" / "sf_night"
@@ -183,7 +183,7 @@ def run(args: argparse.Namespace) -> tuple[dict, list]:
 
 def print_result(res: dict) -> None:
     rep, rss = res["integrity"], res["rss"]
-    print(integrity.format_report(
+    print(integrity_tables.format_report(
         rep, f"soak: {res['duration_s']} s, {res['hz']:g} Hz camera (640x480 fit), "
              f"{res['queries']} SF night queries held {res['hold_s']:g} s each, prior "
              f"{res['prior']}" + (f" ({res['vlm_delay_s']:g} s)" if res["vlm_delay_s"] else "")))

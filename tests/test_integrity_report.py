@@ -12,7 +12,7 @@ from pathlib import Path
 import cv2
 import pytest
 
-from vlm_vpr_ros.evaluation import integrity
+from vlm_vpr_ros.evaluation import integrity, integrity_tables
 from vlm_vpr_ros.evaluation.integrity import Trial, integrity_report, time_series
 from vlm_vpr_ros.errors import ConfigError, DataError
 
@@ -89,7 +89,7 @@ def test_regions_and_counts_against_brute_force():
     assert rep["scenes"]["source"] == "key" and rep["scenes"]["n"] == 13
     assert rep["time"] is None
     # the printed table names the regions and both HMI counts
-    text = integrity.format_report(rep)
+    text = integrity_tables.format_report(rep)
     assert "3 / 2 / 2 / 4" in text and "HMI (DO-229" in text and "issue 27" in text
 
 
@@ -245,14 +245,14 @@ def test_results_without_protection_column(tmp_path, capsys):
     assert rep["regions"]["no_pl"] == len(fixes)
     assert rep["error_gt_al"]["count"] == sum(c[0] > 50 for c in fixes)
     assert rep["hmi"]["count"] == 0 and rep["error_gt_pl"]["count"] == 0
-    assert "no protection_m column" in integrity.format_report(rep)
+    assert "no protection_m column" in integrity_tables.format_report(rep)
     # a column with no usable value (an evaluate-bag frames.csv of today's node): the same
     res, gt = _files(tmp_path, True, {i: "" if i % 2 else "nan" for i in range(13)})
     empty = integrity.evaluate_integrity(res, gt)
     assert empty["protection_level"]["available"] is False
     n_junk = sum(c[1] is not None and i % 2 == 0 for i, c in enumerate(CASES))  # the "nan"s
     assert empty["protection_level"]["invalid_values"] == n_junk == 6
-    assert empty["regions"] == rep["regions"] and "6 junk" in integrity.format_report(empty)
+    assert empty["regions"] == rep["regions"] and "6 junk" in integrity_tables.format_report(empty)
 
 
 def test_junk_protection_levels(tmp_path):

@@ -211,7 +211,8 @@ def cmd_evaluate_bag(args: argparse.Namespace) -> int:
 
     from vlm_vpr_ros.bags.messages import IMAGE_TYPES, NAVSATFIX
 
-    from vlm_vpr_ros.evaluation.integrity import check_alert_limit, format_report
+    from vlm_vpr_ros.evaluation.integrity import check_alert_limit
+    from vlm_vpr_ros.evaluation.integrity_tables import format_report
 
     alert_m = check_alert_limit(args.alert_limit_m)
     bag = open_bag(args.bag)

@@ -357,7 +357,7 @@ def _localize_descriptors(args: argparse.Namespace, files: list[str]) -> int:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from vlm_vpr_ros.evaluation import integrity
+    from vlm_vpr_ros.evaluation import integrity, integrity_tables
     from vlm_vpr_ros.evaluation.metrics import evaluate_results_csv, format_table
 
     alert_m = integrity.check_alert_limit(args.alert_limit_m)
@@ -390,7 +390,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
                 f"{fx['precision50_pct']:.1f}% within 50 m")
         print(f"fixes (status fix): {fx['n']} of {summary['n']} ({fx['rate_pct']:.1f}%); "
               f"precision {prec}")
-    print("\n" + integrity.format_report(integ, "integrity (docs/evaluation.md)"))
+    print("\n" + integrity_tables.format_report(integ, "integrity (docs/evaluation.md)"))
     for key, path in integ["outputs"].items():
         print(f"{key:>14}: {path}")
     return 0

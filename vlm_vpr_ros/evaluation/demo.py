@@ -299,7 +299,7 @@ def _bag_demo(out: Path, map_dir: Path, queries: Path, n_steps: int) -> tuple[di
 
 def _integrity(out: Path, queries: Path, extras: dict, with_bag: bool) -> dict:
     """The integrity table (docs/evaluation.md "Integrity") of the verified runs, printed."""
-    from vlm_vpr_ros.evaluation.integrity import demo_integrity
+    from vlm_vpr_ros.evaluation.integrity_tables import demo_integrity
     from vlm_vpr_ros.evaluation.metrics import format_cells
 
     runs = {f"{label}: {name}": e["results_csv"] for step, label in FIX_STEPS

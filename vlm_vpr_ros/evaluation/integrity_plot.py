@@ -10,11 +10,10 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import numpy as np
 
-from vlm_vpr_ros.evaluation.integrity import REGIONS, Trial, region
 from vlm_vpr_ros.evaluation.plots import _pyplot, _save
 
 AXIS_M = (1.0, 10_000.0)
@@ -25,26 +24,23 @@ _LABELS = {"nominal": "nominal", "misleading": "misleading (MI)",
            "unavailable": "unavailable"}
 
 
-def plot_stanford(path: str | os.PathLike[str], trials: Sequence[Trial], alert_limit_m: float,
-                  title: str = "", dpi: int = 110) -> Path:
-    """Write the Stanford diagram of ``trials`` to ``path`` (PNG); returns the path."""
+def plot_stanford(path: str | os.PathLike[str], points: Sequence[tuple[float, float, bool]],
+                  counts: Mapping[str, int], alert_limit_m: float, title: str = "",
+                  dpi: int = 110) -> Path:
+    """Write the Stanford diagram to ``path`` (PNG); returns the path. ``points``: (protection
+    level m, error m, is a fix) of the answers that have a protection level; ``counts``: the
+    answers per region (:data:`vlm_vpr_ros.evaluation.integrity.REGIONS`) and ``no_pl`` (fixes
+    without a protection level), as the report counted them."""
     plt = _pyplot()
     from matplotlib.colors import LogNorm
 
     lo, hi = AXIS_M
     al = float(alert_limit_m)
     hi = max(hi, 4.0 * al)
-    counts = dict.fromkeys((*REGIONS, "no_pl"), 0)
     fix_xy, other_xy = [], []
-    for t in trials:
-        reg = region(t, al)
-        if reg is None:
-            continue
-        counts[reg] += 1
-        if t.protection_m is None:
-            continue
-        xy = (min(max(t.protection_m, lo), hi), min(max(t.error_m, lo), hi))
-        (fix_xy if t.fix else other_xy).append(xy)
+    for pl, err, fix in points:
+        xy = (min(max(pl, lo), hi), min(max(err, lo), hi))
+        (fix_xy if fix else other_xy).append(xy)
     fig, ax = plt.subplots(figsize=(7.2, 6.0))
     ax.set_xscale("log")
     ax.set_yscale("log")
