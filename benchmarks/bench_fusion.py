@@ -25,6 +25,7 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+from benchmarks import cpuinfo  # noqa: E402
 
 from vlm_vpr_ros.localization.fusion.calibration import _sample_prior  # noqa: E402
 from vlm_vpr_ros.localization.fusion.error_model import load_error_models  # noqa: E402
@@ -50,7 +51,10 @@ def main() -> int:
     ap.add_argument("--refs", type=int, default=50_000)
     ap.add_argument("--dim", type=int, default=256)
     ap.add_argument("--queries", type=int, default=200)
+    cpuinfo.add_argument(ap)
+    cpuinfo.apply_cpu_paths()
     args = ap.parse_args()
+    print(cpuinfo.cpu_line(), flush=True)
     rng = np.random.default_rng(0)
     xy = coords(args.refs, rng)
     n = len(xy)

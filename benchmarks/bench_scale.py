@@ -40,6 +40,7 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+from benchmarks import cpuinfo  # noqa: E402
 MP16 = REPO.parent / "shared" / "data" / "mp16_coords"
 CHUNK = 100_000
 EARTH_KM = 6371.0088
@@ -336,7 +337,11 @@ def main() -> int:
     ap.add_argument("--workdir", default="/tmp/bench_scale")
     ap.add_argument("--keep", action="store_true", help="keep data and maps afterwards")
     ap.add_argument("--child", nargs=2, metavar=("MAP", "WORK"), help=argparse.SUPPRESS)
+    cpuinfo.add_argument(ap)
+    cpuinfo.apply_cpu_paths()
     a = ap.parse_args()
+    if not a.child:
+        print(cpuinfo.cpu_line(), flush=True)
     if a.child:
         child(a.child[0], a.child[1], a.queries, a.global_queries)
         return 0

@@ -35,6 +35,7 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+from benchmarks import cpuinfo  # noqa: E402
 
 from vlm_vpr_ros.files.images import load_image  # noqa: E402
 from vlm_vpr_ros.localization.pipeline import LocalizationPipeline  # noqa: E402
@@ -128,7 +129,10 @@ def main() -> int:
     ap.add_argument("--queries", type=int, default=34)
     ap.add_argument("--repeat", type=int, default=1)
     ap.add_argument("--intake-s", type=float, default=20.0)
+    cpuinfo.add_argument(ap)
+    cpuinfo.apply_cpu_paths()
     args = ap.parse_args()
+    print(cpuinfo.cpu_line(), flush=True)
     with tempfile.TemporaryDirectory() as tmp:
         map_dir, images, label = data(Path(tmp), args.map)
         images = images[:args.queries]
