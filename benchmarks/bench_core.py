@@ -45,7 +45,8 @@ from vlm_vpr_ros.maps.build_images import build_map  # noqa: E402
 from vlm_vpr_ros.maps.reference_map import ReferenceMap  # noqa: E402
 from vlm_vpr_ros.priors.base import Prior, PriorResult  # noqa: E402
 
-MP16 = REPO.parent / "shared" / "data" / "mp16_coords" / "coordinates_100K.csv"
+SHARED = Path(os.environ.get("VLM_VPR_SHARED", REPO.parent / "shared"))
+MP16 = SHARED / "data" / "mp16_coords" / "coordinates_100K.csv"
 DEFAULT_DESCRIPTOR = "vlad_rootsift"  # build-map's default
 SEARCHES = ("search", "pq_candidates")  # a submap's scans (maps/search.py)
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import os
 import statistics
 import sys
 import tempfile
@@ -35,7 +36,8 @@ from vlm_vpr_ros.maps.build_images import write_map_calibration  # noqa: E402
 from vlm_vpr_ros.maps.reference_map import ReferenceMap  # noqa: E402
 from vlm_vpr_ros.priors.base import Prior, PriorResult  # noqa: E402
 
-MP16 = REPO.parent / "shared" / "data" / "mp16_coords" / "coordinates_100K.csv"
+SHARED = Path(os.environ.get("VLM_VPR_SHARED", REPO.parent / "shared"))
+MP16 = SHARED / "data" / "mp16_coords" / "coordinates_100K.csv"
 
 
 def coords(n: int, rng: np.random.Generator) -> np.ndarray:

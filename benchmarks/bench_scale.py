@@ -41,7 +41,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 from benchmarks import cpuinfo  # noqa: E402
-MP16 = REPO.parent / "shared" / "data" / "mp16_coords"
+SHARED = Path(os.environ.get("VLM_VPR_SHARED", REPO.parent / "shared"))
+MP16 = SHARED / "data" / "mp16_coords"
 CHUNK = 100_000
 EARTH_KM = 6371.0088
 
@@ -322,6 +323,20 @@ def report(results: dict, n: int) -> None:
                   f"global {med(p['lat_global']) / med(b['lat_global']):.2f}x")
 
 
+def build(a: argparse.Namespace, cli: list[str], work: Path, out: Path, kind: str,
+          cap: int) -> tuple[float, float]:
+    """A fresh build of one kind in a child process: (wall s, peak RSS GiB)."""
+    shutil.rmtree(out, ignore_errors=True)
+    shutil.rmtree(work / f".map_{kind}.partial", ignore_errors=True)  # a fresh build
+    build_s, build_rss, _ = run_measured(
+        cli + ["-q", "build-map", "--descriptors", str(work / "desc.npy"),
+               "--coords", str(work / "coords.csv"), "--descriptor", "cosplace",
+               "--out", str(out), "--index", kind, "--clusters", str(a.clusters),
+               "--max-submap-size", str(cap), "--rerank-factor", str(a.rerank_factor)]
+        + (["--ram-budget-mb", f"{a.ram_budget_mb:g}"] if a.ram_budget_mb else []))
+    return build_s, build_rss
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, default=100_000)
@@ -331,11 +346,16 @@ def main() -> int:
     ap.add_argument("--max-submap-size", type=int, default=None,
                     help="balance: split submaps above this size (default max(20000, n/80))")
     ap.add_argument("--rerank-factor", type=int, default=16)
+    ap.add_argument("--ram-budget-mb", type=float, default=None,
+                    help="for --kinds auto: the build's RAM budget (e.g. 250)")
     ap.add_argument("--queries", type=int, default=1000)
     ap.add_argument("--global-queries", type=int, default=30)
     ap.add_argument("--recall-queries", type=int, default=300)
     ap.add_argument("--workdir", default="/tmp/bench_scale")
     ap.add_argument("--keep", action="store_true", help="keep data and maps afterwards")
+    ap.add_argument("--reuse", action="store_true",
+                    help="query an existing map of the workdir (--keep of an earlier run) "
+                         "instead of building it again")
     ap.add_argument("--child", nargs=2, metavar=("MAP", "WORK"), help=argparse.SUPPRESS)
     cpuinfo.add_argument(ap)
     cpuinfo.apply_cpu_paths()
@@ -353,16 +373,14 @@ def main() -> int:
           f"{a.rerank_factor}; machine: {os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}")
     cli = [sys.executable, "-m", "vlm_vpr_ros.cli"]
     results = {}
-    (work / "exact.npz").unlink(missing_ok=True)  # depends on this run's partition
+    if not a.reuse:
+        (work / "exact.npz").unlink(missing_ok=True)  # depends on this run's partition
     for kind in a.kinds.split(","):
         out = work / f"map_{kind}"
-        shutil.rmtree(out, ignore_errors=True)
-        shutil.rmtree(work / f".map_{kind}.partial", ignore_errors=True)  # a fresh build
-        build_s, build_rss, _ = run_measured(
-            cli + ["-q", "build-map", "--descriptors", str(work / "desc.npy"),
-                   "--coords", str(work / "coords.csv"), "--descriptor", "cosplace",
-                   "--out", str(out), "--index", kind, "--clusters", str(a.clusters),
-                   "--max-submap-size", str(cap), "--rerank-factor", str(a.rerank_factor)])
+        if a.reuse and (out / "manifest.json").is_file():
+            build_s, build_rss = math.nan, math.nan  # built by an earlier run
+        else:
+            build_s, build_rss = build(a, cli, work, out, kind, cap)
         if not (work / "exact.npz").exists():
             exact_top(out, work, a.recall_queries)
         t0 = time.perf_counter()
