@@ -168,8 +168,9 @@ def exact_sq_l2(rerank: np.ndarray, rows: np.ndarray, q: np.ndarray) -> np.ndarr
         return np.zeros(0, np.float32)
     cv2 = _cv2()
     if cv2 is not None:
-        vecs = cv2.subtract(half, np.broadcast_to(q.reshape(1, -1), half.shape),
-                            dtype=cv2.CV_32F)
+        # q repeated per row: OpenCV copies a broadcast (stride 0) operand element by element
+        tiled = np.repeat(np.asarray(q, np.float32).reshape(1, -1), len(half), axis=0)
+        vecs = cv2.subtract(half, tiled, dtype=cv2.CV_32F)
     else:
         vecs = _fp16_codec(half.shape[1]).decode(half.view(np.uint8))
         vecs -= q
