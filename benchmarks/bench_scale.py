@@ -212,7 +212,7 @@ def child(map_dir: str, work: str, n_loop: int, n_global: int) -> None:
         m.search_submaps([big], np.ascontiguousarray(q[i % nq][None, :]), 50)
         search_largest.append((time.perf_counter() - t) * 1e3)
     search_largest = search_largest[20:]
-    shapes = thread_policy(m, loc, big, bp, q)
+    shapes = thread_policy(m, loc, big, bp, q, min(200, n_loop))
     loc3 = Localizer(m, LocalizerConfig(top_p=50, fusion="paper", n_submaps=3))
     timed(loc3, range(50), lambda i: priors[i % nq])
     three = timed(loc3, range(300), lambda i: priors[i % nq])
