@@ -160,8 +160,8 @@ def exact_sq_l2(rerank: np.ndarray, rows: np.ndarray, q: np.ndarray) -> np.ndarr
     rows read the memory-mapped file in order): ``float32(v) - q`` then the sum of squares,
     the fp16 -> float32 conversion and the difference in one OpenCV call (F16C SIMD, one
     thread; exact: every fp16 value is a float32). FAISS's fp16 decoder converts one value at
-    a time (0.69 vs 0.18 ms for 800 x 512 here, issue 31) and numpy's cast is slower still;
-    without OpenCV the decoder is used, on the calling thread's OpenMP setting
+    a time (issue 31: ``benchmarks/bench_scale.py`` compares both) and numpy's cast is slower
+    still; without OpenCV the decoder is used, on the calling thread's OpenMP setting
     (:func:`vlm_vpr_ros.maps.search.one_faiss_thread`)."""
     half = np.ascontiguousarray(rerank[rows])
     if not len(half):
