@@ -98,3 +98,17 @@ def test_registry_matcher_two_threads_equals_one(monkeypatch):
     assert pairs[1] == pairs[2] == brute_force(q, r, 0.8, 2.0)
     tiny = LocalFeatures(fq.keypoints[:1], fq.descriptors[:1], (640, 480))
     assert m.match(m.prepare(tiny), tiny, fq).shape == (0, 2)  # fewer than 2: no pairs
+
+
+def test_a_forked_child_matches_on_its_own_helper(monkeypatch):
+    """A process forked after a match (multiprocessing's fork start) gets a helper thread of
+    its own instead of waiting forever on the parent's, which the fork did not copy."""
+    import multiprocessing as mp
+
+    monkeypatch.setattr(sift, "SPLIT_MIN_CELLS", 0)
+    q, r = scene(200, 150, 3)
+    want = sift.mutual_ratio_matches(q, r, 0.8, 2.0, True, 2)  # the parent's helper exists
+    ctx = mp.get_context("fork")
+    with ctx.Pool(1) as pool:
+        got = pool.apply_async(sift.mutual_ratio_matches, (q, r, 0.8, 2.0, True, 2)).get(120)
+    assert np.array_equal(got, want)

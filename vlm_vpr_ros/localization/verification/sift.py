@@ -133,16 +133,17 @@ class MutualNN(Matcher):
 MATCH_THREADS = min(2, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
                     else (os.cpu_count() or 1))
 SPLIT_MIN_CELLS = 250_000  # smaller products: a thread hand-off costs more than it saves
-_pool: ThreadPoolExecutor | None = None
+_pool: tuple[int, ThreadPoolExecutor] | None = None  # (pid, helper): a forked child has none
 _pool_lock = threading.Lock()
 
 
 def _helper() -> ThreadPoolExecutor:
     global _pool
     with _pool_lock:
-        if _pool is None:
-            _pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="nn-match")
-        return _pool
+        if _pool is None or _pool[0] != os.getpid():  # a fork copies the object, not the thread
+            _pool = (os.getpid(), ThreadPoolExecutor(max_workers=1,
+                                                     thread_name_prefix="nn-match"))
+        return _pool[1]
 
 
 def _rows_part(q: np.ndarray, rt: np.ndarray, sim: np.ndarray) -> tuple[np.ndarray, ...]:
