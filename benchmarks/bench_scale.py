@@ -18,8 +18,14 @@ over random submaps (anonymous and file-backed, from /proc/self/status), query l
 top-50 + re-rank (1 submap, the largest submap, 3 submaps, global; median and p95, warm), and
 recall@1 / recall@50 of the retrieval vs exact float32 brute force over the same submap.
 
-    .venv/bin/python benchmarks/bench_scale.py --n 100000 [--kinds flat,fp16,pq]
-        [--max-submap-size 50000] [--workdir /tmp/bench_scale] [--keep]
+Issue 31: per kind, the thread policy and the re-rank are compared in the query process,
+interleaved query by query (wall and CPU ms): the largest submap's search alone, the paper's
+query on it and the posterior over the whole map, with one FAISS thread per query (default),
+with FAISS's OpenMP default, and with the re-rank of before (FAISS's fp16 decoder).
+
+    .venv/bin/python benchmarks/bench_scale.py --n 100000 [--kinds flat,fp16,pq,auto]
+        [--ram-budget-mb 250] [--max-submap-size 50000] [--workdir /tmp/bench_scale] [--keep]
+        [--reuse] [--cpu-paths native|avx2|generic]
 """
 
 from __future__ import annotations
