@@ -33,6 +33,7 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+from benchmarks import cpuinfo  # noqa: E402
 
 from vlm_vpr_ros.descriptors import create_descriptor  # noqa: E402
 from vlm_vpr_ros.evaluation.demo import DEMO_DATA, make_query  # noqa: E402
@@ -44,7 +45,8 @@ from vlm_vpr_ros.mapping.build_images import build_map  # noqa: E402
 from vlm_vpr_ros.maps.reference_map import ReferenceMap  # noqa: E402
 from vlm_vpr_ros.priors.provider import Prior, PriorResult  # noqa: E402
 
-MP16 = REPO.parent / "shared" / "data" / "mp16_coords" / "coordinates_100K.csv"
+SHARED = Path(os.environ.get("VLM_VPR_SHARED", REPO.parent / "shared"))
+MP16 = SHARED / "data" / "mp16_coords" / "coordinates_100K.csv"
 DEFAULT_DESCRIPTOR = "vlad_rootsift"  # build-map's default
 SEARCHES = ("search", "pq_candidates")  # a submap's scans (maps/search.py)
 
@@ -256,7 +258,10 @@ def main() -> int:
     ap.add_argument("--top-p", type=int, default=50)
     ap.add_argument("--submap-size", type=int, default=41_000)
     ap.add_argument("--json", type=Path, default=None, help="also write the rows as JSON here")
+    cpuinfo.add_argument(ap)
+    cpuinfo.apply_cpu_paths()
     a = ap.parse_args()
+    print(cpuinfo.cpu_line(), flush=True)
     import faiss
 
     load = os.getloadavg()
@@ -326,6 +331,7 @@ def main() -> int:
             "benchmark": "benchmarks/bench_core.py", "args": {k: str(v) for k, v in
                                                              vars(a).items()},
             "machine": {"cores": os.cpu_count(), "faiss_threads": faiss.omp_get_max_threads(),
+                        "cpuinfo": cpuinfo.describe(),
                         "load_average": [round(x, 2) for x in load]},
             "rows": table}, indent=1) + "\n")
         print(f"\nwrote {a.json}")

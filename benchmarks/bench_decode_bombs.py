@@ -23,6 +23,7 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+from benchmarks import cpuinfo  # noqa: E402
 
 CHILD = r"""
 import json, sys
@@ -89,7 +90,10 @@ def main() -> int:
     ap.add_argument("--side", type=int, default=12000)
     ap.add_argument("--workdir", type=Path, default=Path("/tmp/bench_decode_bombs"))
     ap.add_argument("--keep", action="store_true")
+    cpuinfo.add_argument(ap)
+    cpuinfo.apply_cpu_paths()
     args = ap.parse_args()
+    print(cpuinfo.cpu_line(), flush=True)
     files = make_bombs(args.workdir, args.side)
     print(f"{args.side}x{args.side} px bombs; load {os.getloadavg()[0]:.1f} on "
           f"{os.cpu_count()} CPUs; peak RSS of a fresh child: after reading the file / after "

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import os
 import statistics
 import sys
 import tempfile
@@ -25,6 +26,7 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+from benchmarks import cpuinfo  # noqa: E402
 
 from vlm_vpr_ros.localization.fusion.calibration import _sample_prior  # noqa: E402
 from vlm_vpr_ros.localization.fusion.error_model import load_error_models  # noqa: E402
@@ -34,7 +36,8 @@ from vlm_vpr_ros.mapping.build_images import write_map_calibration  # noqa: E402
 from vlm_vpr_ros.maps.reference_map import ReferenceMap  # noqa: E402
 from vlm_vpr_ros.priors.provider import Prior, PriorResult  # noqa: E402
 
-MP16 = REPO.parent / "shared" / "data" / "mp16_coords" / "coordinates_100K.csv"
+SHARED = Path(os.environ.get("VLM_VPR_SHARED", REPO.parent / "shared"))
+MP16 = SHARED / "data" / "mp16_coords" / "coordinates_100K.csv"
 
 
 def coords(n: int, rng: np.random.Generator) -> np.ndarray:
@@ -50,7 +53,10 @@ def main() -> int:
     ap.add_argument("--refs", type=int, default=50_000)
     ap.add_argument("--dim", type=int, default=256)
     ap.add_argument("--queries", type=int, default=200)
+    cpuinfo.add_argument(ap)
+    cpuinfo.apply_cpu_paths()
     args = ap.parse_args()
+    print(cpuinfo.cpu_line(), flush=True)
     rng = np.random.default_rng(0)
     xy = coords(args.refs, rng)
     n = len(xy)

@@ -23,6 +23,7 @@ import torch
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+from benchmarks import cpuinfo  # noqa: E402
 
 from vlm_vpr_ros.descriptors.deep.specs import get_spec  # noqa: E402
 from vlm_vpr_ros.descriptors.deep.torch_descriptor import DeepDescriptor  # noqa: E402
@@ -124,12 +125,16 @@ def main() -> int:
     ap.add_argument("--storage-refs", type=int, default=0, metavar="N",
                     help="also measure a 16384-D (BoQ) submap of N synthetic references")
     ap.add_argument("--json", action="store_true", help="print only a JSON object")
+    cpuinfo.add_argument(ap)
+    cpuinfo.apply_cpu_paths()
     args = ap.parse_args()
+    print(cpuinfo.cpu_line(), file=sys.stderr if args.json else sys.stdout, flush=True)
     rows = [bench(m, args.device, args.repeats, args.batch, args.batch_images, args.fp16)
             for m in args.models]
     storage = bench_storage(args.storage_refs) if args.storage_refs else None
     env = {"torch": torch.__version__, "threads": torch.get_num_threads(),
-           "cpu": platform.processor() or platform.machine(), "python": platform.python_version()}
+           "cpu": platform.processor() or platform.machine(), "python": platform.python_version(),
+           "machine": cpuinfo.describe()}
     if args.json:
         print(json.dumps({"environment": env, "results": rows, "storage": storage}))
         return 0

@@ -32,6 +32,8 @@ import cv2
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "tests"))
+sys.path.insert(0, str(REPO))
+from benchmarks import cpuinfo  # noqa: E402
 
 from chat_server import ChatServer  # noqa: E402
 from node_harness import GraphClient, NodeProcess, domain_id, image_msg, stamp_of  # noqa: E402
@@ -155,7 +157,10 @@ def main() -> None:
     ap.add_argument("--json", action="store_true", help="print only the JSON result")
     ap.add_argument("--debug-ratio", action="store_true",
                     help="run with publish_debug off, then on; print the CPU ratio")
+    cpuinfo.add_argument(ap)
+    cpuinfo.apply_cpu_paths()
     args = ap.parse_args()
+    print(cpuinfo.cpu_line(), file=sys.stderr if args.json else sys.stdout, flush=True)
     with tempfile.TemporaryDirectory() as tmp:
         if args.debug_ratio:
             debug_ratio(run(args, Path(tmp), False), run(args, Path(tmp), True), args,

@@ -28,6 +28,7 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+from benchmarks import cpuinfo  # noqa: E402
 
 
 def make_map(out: Path, n_submaps: int, n_refs: int, dim: int = 512) -> None:
@@ -109,7 +110,10 @@ def main() -> int:
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--workdir", type=Path, default=Path("/tmp/bench_open_check"))
     ap.add_argument("--keep", action="store_true")
+    cpuinfo.add_argument(ap)
+    cpuinfo.apply_cpu_paths()
     args = ap.parse_args()
+    print(cpuinfo.cpu_line(), flush=True)
     path = args.map
     if path is None:
         path = args.workdir / "map"

@@ -25,6 +25,8 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "tests"))
+sys.path.insert(0, str(REPO))
+from benchmarks import cpuinfo  # noqa: E402
 
 from node_harness import NodeProcess, domain_id, ros_env  # noqa: E402
 
@@ -149,7 +151,10 @@ def main() -> None:
     ap.add_argument("--publisher", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--camera-qos", default="reliable", help=argparse.SUPPRESS)
     ap.add_argument("--compressed", action="store_true", help=argparse.SUPPRESS)
+    cpuinfo.add_argument(ap)
+    cpuinfo.apply_cpu_paths()
     args = ap.parse_args()
+    print(cpuinfo.cpu_line(), file=sys.stderr if args.json else sys.stdout, flush=True)
     if args.publisher:
         publisher(args)
         return

@@ -31,6 +31,7 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+from benchmarks import cpuinfo  # noqa: E402
 
 from vlm_vpr_ros.descriptors import create_descriptor  # noqa: E402
 from vlm_vpr_ros.distributed.describe import DescribeOptions, describe_to_shards  # noqa: E402
@@ -131,7 +132,10 @@ def main() -> int:
     ap.add_argument("--shard-size", type=int, default=64)
     ap.add_argument("--cost", action="store_true", help="per-descriptor cost table instead")
     ap.add_argument("--cost-images", type=int, default=16)
+    cpuinfo.add_argument(ap)
+    cpuinfo.apply_cpu_paths()
     args = ap.parse_args()
+    print(cpuinfo.cpu_line(), flush=True)
     logging.basicConfig(level=logging.WARNING)
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
     if not Path(args.coords).exists():

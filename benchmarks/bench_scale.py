@@ -18,8 +18,14 @@ over random submaps (anonymous and file-backed, from /proc/self/status), query l
 top-50 + re-rank (1 submap, the largest submap, 3 submaps, global; median and p95, warm), and
 recall@1 / recall@50 of the retrieval vs exact float32 brute force over the same submap.
 
-    .venv/bin/python benchmarks/bench_scale.py --n 100000 [--kinds flat,fp16,pq]
-        [--max-submap-size 50000] [--workdir /tmp/bench_scale] [--keep]
+Issue 31: per kind, the thread policy and the re-rank are compared in the query process,
+interleaved query by query (wall and CPU ms): the largest submap's search alone, the paper's
+query on it and the posterior over the whole map, with one FAISS thread per query (default),
+with FAISS's OpenMP default, and with the re-rank of before (FAISS's fp16 decoder).
+
+    .venv/bin/python benchmarks/bench_scale.py --n 100000 [--kinds flat,fp16,pq,auto]
+        [--ram-budget-mb 250] [--max-submap-size 50000] [--workdir /tmp/bench_scale] [--keep]
+        [--reuse] [--cpu-paths native|avx2|generic]
 """
 
 from __future__ import annotations
@@ -40,7 +46,9 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
-MP16 = REPO.parent / "shared" / "data" / "mp16_coords"
+from benchmarks import cpuinfo  # noqa: E402
+SHARED = Path(os.environ.get("VLM_VPR_SHARED", REPO.parent / "shared"))
+MP16 = SHARED / "data" / "mp16_coords"
 CHUNK = 100_000
 EARTH_KM = 6371.0088
 
@@ -210,6 +218,7 @@ def child(map_dir: str, work: str, n_loop: int, n_global: int) -> None:
         m.search_submaps([big], np.ascontiguousarray(q[i % nq][None, :]), 50)
         search_largest.append((time.perf_counter() - t) * 1e3)
     search_largest = search_largest[20:]
+    shapes = thread_policy(m, loc, big, bp, q, min(200, n_loop))
     loc3 = Localizer(m, LocalizerConfig(top_p=50, fusion="paper", n_submaps=3))
     timed(loc3, range(50), lambda i: priors[i % nq])
     three = timed(loc3, range(300), lambda i: priors[i % nq])
@@ -232,11 +241,55 @@ def child(map_dir: str, work: str, n_loop: int, n_global: int) -> None:
            "lat_first": first, "lat_1": warm, "lat_largest": largest,
            "search_largest": search_largest, "lat_3": three,
            "lat_posterior": posterior, "region_submaps": statistics.median(region),
-           "lat_global": glob, "largest": [m.submaps[big].id, m.submaps[big].count,
-                                           m.submaps[big].kind],
+           "lat_global": glob, "shapes": shapes,
+           "largest": [m.submaps[big].id, m.submaps[big].count, m.submaps[big].kind],
            "recall1": r1 / len(ex["qidx"]), "recall50": r50 / len(ex["qidx"]),
            "n_submaps": len(m.submaps)}
     print("RESULT " + json.dumps(res), flush=True)
+
+
+#: (name, one FAISS thread per query?, OpenCV re-rank?) compared query by query (issue 31)
+VARIANTS = (("1 thread, OpenCV re-rank (default)", True, True),
+            ("OpenMP default threads, OpenCV re-rank", False, True),
+            ("1 thread, FAISS fp16 decoder re-rank (before #31)", True, False))
+
+
+def thread_policy(m, loc, big: int, bp, q: np.ndarray, n: int = 200) -> dict:
+    """Wall and CPU ms (median) of the largest submap's search alone and of the paper's whole
+    query on it, and of the posterior on the whole map, for each of :data:`VARIANTS`,
+    interleaved query by query (one run: the load hits every variant alike)."""
+    import contextlib
+
+    from vlm_vpr_ros.localization.localizer import Localizer, LocalizerConfig
+    from vlm_vpr_ros.maps import indexes, search
+
+    one, cv = search.one_faiss_thread, indexes._cv2
+
+    @contextlib.contextmanager
+    def variant(single: bool, opencv: bool):
+        search.one_faiss_thread = one if single else contextlib.nullcontext
+        indexes._cv2 = cv if opencv else (lambda: None)
+        try:
+            yield
+        finally:
+            search.one_faiss_thread, indexes._cv2 = one, cv
+    post = Localizer(m, LocalizerConfig(top_p=50))
+    shapes = {"search": lambda x: m.search_submaps([big], x[None, :], 50),
+              "paper": lambda x: loc.localize(x, bp),
+              "posterior": lambda x: post.localize(x, None)}
+    out = {f"{s}|{v[0]}": ([], []) for s in shapes for v in VARIANTS}
+    for i in range(n + 5):
+        x = np.ascontiguousarray(q[i % len(q)])
+        for shape, fn in shapes.items():
+            for name, single, opencv in VARIANTS:
+                with variant(single, opencv):
+                    w, c = time.perf_counter(), time.thread_time()
+                    fn(x)
+                    c, w = time.thread_time() - c, time.perf_counter() - w
+                if i >= 5:  # warm-up
+                    out[f"{shape}|{name}"][0].append(w * 1e3)
+                    out[f"{shape}|{name}"][1].append(c * 1e3)
+    return {k: [statistics.median(w), statistics.median(c)] for k, (w, c) in out.items()}
 
 
 def exact_top(map_dir: Path, work: Path, n_recall: int) -> None:
@@ -310,6 +363,18 @@ def report(results: dict, n: int) -> None:
     print(f"{'':44}" + "".join(f"{k:>18}" for k in kinds))
     for name, fn in rows:
         print(f"{name:44}" + "".join(f"{fn(results[k]):>18}" for k in kinds))
+    for kind, r in results.items():
+        if not r.get("shapes"):
+            continue
+        print(f"\n{kind}: thread policy and re-rank, same process, interleaved query by query "
+              f"(largest submap {r['largest'][0]}, {r['largest'][1]:,} refs, {r['largest'][2]};"
+              f" posterior: no prior, the whole map)")
+        print(f"  {'shape':<11}{'variant':<52}{'wall ms':>9}{'cpu ms':>9}{'/ default':>11}")
+        for shape in ("search", "paper", "posterior"):
+            base = r["shapes"][f"{shape}|{VARIANTS[0][0]}"][0]
+            for name, _, _ in VARIANTS:
+                w, c = r["shapes"][f"{shape}|{name}"]
+                print(f"  {shape:<11}{name:<52}{w:>9.2f}{c:>9.2f}{w / base:>10.2f}x")
     med = statistics.median
     for base in ("flat", "fp16"):
         if "pq" in results and base in results:
@@ -321,6 +386,20 @@ def report(results: dict, n: int) -> None:
                   f"global {med(p['lat_global']) / med(b['lat_global']):.2f}x")
 
 
+def build(a: argparse.Namespace, cli: list[str], work: Path, out: Path, kind: str,
+          cap: int) -> tuple[float, float]:
+    """A fresh build of one kind in a child process: (wall s, peak RSS GiB)."""
+    shutil.rmtree(out, ignore_errors=True)
+    shutil.rmtree(work / f".map_{kind}.partial", ignore_errors=True)  # a fresh build
+    build_s, build_rss, _ = run_measured(
+        cli + ["-q", "build-map", "--descriptors", str(work / "desc.npy"),
+               "--coords", str(work / "coords.csv"), "--descriptor", "cosplace",
+               "--out", str(out), "--index", kind, "--clusters", str(a.clusters),
+               "--max-submap-size", str(cap), "--rerank-factor", str(a.rerank_factor)]
+        + (["--ram-budget-mb", f"{a.ram_budget_mb:g}"] if a.ram_budget_mb else []))
+    return build_s, build_rss
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, default=100_000)
@@ -330,13 +409,22 @@ def main() -> int:
     ap.add_argument("--max-submap-size", type=int, default=None,
                     help="balance: split submaps above this size (default max(20000, n/80))")
     ap.add_argument("--rerank-factor", type=int, default=16)
+    ap.add_argument("--ram-budget-mb", type=float, default=None,
+                    help="for --kinds auto: the build's RAM budget (e.g. 250)")
     ap.add_argument("--queries", type=int, default=1000)
     ap.add_argument("--global-queries", type=int, default=30)
     ap.add_argument("--recall-queries", type=int, default=300)
     ap.add_argument("--workdir", default="/tmp/bench_scale")
     ap.add_argument("--keep", action="store_true", help="keep data and maps afterwards")
+    ap.add_argument("--reuse", action="store_true",
+                    help="query an existing map of the workdir (--keep of an earlier run) "
+                         "instead of building it again")
     ap.add_argument("--child", nargs=2, metavar=("MAP", "WORK"), help=argparse.SUPPRESS)
+    cpuinfo.add_argument(ap)
+    cpuinfo.apply_cpu_paths()
     a = ap.parse_args()
+    if not a.child:
+        print(cpuinfo.cpu_line(), flush=True)
     if a.child:
         child(a.child[0], a.child[1], a.queries, a.global_queries)
         return 0
@@ -348,16 +436,14 @@ def main() -> int:
           f"{a.rerank_factor}; machine: {os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}")
     cli = [sys.executable, "-m", "vlm_vpr_ros.cli"]
     results = {}
-    (work / "exact.npz").unlink(missing_ok=True)  # depends on this run's partition
+    if not a.reuse:
+        (work / "exact.npz").unlink(missing_ok=True)  # depends on this run's partition
     for kind in a.kinds.split(","):
         out = work / f"map_{kind}"
-        shutil.rmtree(out, ignore_errors=True)
-        shutil.rmtree(work / f".map_{kind}.partial", ignore_errors=True)  # a fresh build
-        build_s, build_rss, _ = run_measured(
-            cli + ["-q", "build-map", "--descriptors", str(work / "desc.npy"),
-                   "--coords", str(work / "coords.csv"), "--descriptor", "cosplace",
-                   "--out", str(out), "--index", kind, "--clusters", str(a.clusters),
-                   "--max-submap-size", str(cap), "--rerank-factor", str(a.rerank_factor)])
+        if a.reuse and (out / "manifest.json").is_file():
+            build_s, build_rss = math.nan, math.nan  # built by an earlier run
+        else:
+            build_s, build_rss = build(a, cli, work, out, kind, cap)
         if not (work / "exact.npz").exists():
             exact_top(out, work, a.recall_queries)
         t0 = time.perf_counter()

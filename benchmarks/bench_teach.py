@@ -23,6 +23,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "tests"))
+from benchmarks import cpuinfo  # noqa: E402
 
 from teach_bags import Place, write_teach_bag  # noqa: E402
 from vlm_vpr_ros.geodesy import haversine_km  # noqa: E402
@@ -65,7 +66,10 @@ def main() -> int:
     ap.add_argument("--limit", type=int, default=None, metavar="N",
                     help="only the first N database images (smoke test)")
     ap.add_argument("--descriptor-option", action="append", default=[], metavar="KEY=VALUE")
+    cpuinfo.add_argument(ap)
+    cpuinfo.apply_cpu_paths()
     args = ap.parse_args()
+    print(cpuinfo.cpu_line(), flush=True)
     root = Path(args.shared) / "data" / "sf_night"
     if not root.is_dir():
         print(f"{root} not found: this benchmark needs ../shared", file=sys.stderr)

@@ -240,3 +240,31 @@ def test_pooled_submap_changed_on_disk_fails_the_query(maps, tmp_path):
         fh.truncate(path.stat().st_size // 2)
     with pytest.raises(MapError, match="after the map was opened"):
         loc.localize(desc[0], None)
+
+
+def test_a_few_pooled_submaps_are_searched_alone(maps, monkeypatch):
+    """The paper's one small submap (or a few) is searched alone, not through a scan of the
+    whole pool, when that reads fewer bytes (issue 31); the same hits either way, and a query
+    over every submap still scans the pool once."""
+    from vlm_vpr_ros.maps import search
+
+    m, desc, copies = maps["flat"]
+    small = m.small_submaps()
+    pooled = np.flatnonzero(small.pooled)
+    assert len(pooled) > 10
+    assert small.pays(pooled[:3])  # this tiny pool (24-D) costs less than 3 calls ...
+    monkeypatch.setattr(search, "CALL_BYTES", 96 * 8)  # ... a call worth 8 rows: as at 512-D
+    calls = []
+    hits = small.hits
+    monkeypatch.setattr(small, "hits", lambda *a: calls.append(1) or hits(*a))
+    rng = np.random.default_rng(11)
+    for t in range(6):
+        few = [int(i) for i in rng.choice(pooled, 1 + t % 3, replace=False)]
+        q = np.ascontiguousarray(desc[copies[t, 0]][None, :])
+        assert small.pays(np.array(few)) is False
+        assert m.search_submaps(few, q, 50) == search_submaps_v1(m, few, q, 50)
+    assert calls == []
+    everything = list(range(len(m.submaps)))
+    assert small.pays(pooled)
+    assert m.search_submaps(everything, q, 50) == search_submaps_v1(m, everything, q, 50)
+    assert calls == [1]

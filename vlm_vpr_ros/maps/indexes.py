@@ -157,17 +157,33 @@ def pq_candidates(index: Any, q: np.ndarray, kk: int) -> tuple[np.ndarray, np.nd
 
 def exact_sq_l2(rerank: np.ndarray, rows: np.ndarray, q: np.ndarray) -> np.ndarray:
     """Stage 2: exact squared L2 of ``q`` to the fp16 re-rank vectors of ``rows`` (ascending
-    rows read the memory-mapped file in order). FAISS's SIMD fp16 decoder (exact: every fp16
-    value is a float32) and one in-place difference: numpy's fp16 cast costs 1.5x more. The
-    decoder runs an OpenMP team: a query's search calls it on one thread
-    (:func:`vlm_vpr_ros.maps.search.one_faiss_thread`), as waking the team on a busy machine
-    costs more than the decode (32 ms instead of 0.6 ms at load 10 on this 2-core machine)."""
+    rows read the memory-mapped file in order): ``float32(v) - q`` then the sum of squares,
+    the fp16 -> float32 conversion and the difference in one OpenCV call (F16C SIMD, one
+    thread; exact: every fp16 value is a float32). FAISS's fp16 decoder converts one value at
+    a time (issue 31: ``benchmarks/bench_scale.py`` compares both) and numpy's cast is slower
+    still; without OpenCV the decoder is used, on the calling thread's OpenMP setting
+    (:func:`vlm_vpr_ros.maps.search.one_faiss_thread`)."""
     half = np.ascontiguousarray(rerank[rows])
     if not len(half):
         return np.zeros(0, np.float32)
-    vecs = _fp16_codec(half.shape[1]).decode(half.view(np.uint8))
-    vecs -= q
+    cv2 = _cv2()
+    if cv2 is not None:
+        # q repeated per row: OpenCV copies a broadcast (stride 0) operand element by element
+        tiled = np.repeat(np.asarray(q, np.float32).reshape(1, -1), len(half), axis=0)
+        vecs = cv2.subtract(half, tiled, dtype=cv2.CV_32F)
+    else:
+        vecs = _fp16_codec(half.shape[1]).decode(half.view(np.uint8))
+        vecs -= q
     return np.einsum("ij,ij->i", vecs, vecs)
+
+
+@functools.lru_cache(maxsize=1)
+def _cv2() -> Any:
+    try:
+        import cv2
+    except ImportError:  # pragma: no cover - OpenCV is a dependency; the decoder still works
+        return None
+    return cv2
 
 
 @functools.lru_cache(maxsize=8)

@@ -26,7 +26,10 @@ returns the rows within the k-th distance the pass has already found elsewhere (
 it has none) — the same distances as each submap's own search (same FAISS kernel; checked in
 tests/test_fusion_search.py). Taking those rows instead of each small submap's
 top-``min(k, count)`` changes no ranking: FAISS keeps the lowest rows on ties, so a row beyond
-its submap's top-k has k rows of that submap ahead of it. Measured on the maps of
+its submap's top-k has k rows of that submap ahead of it. A query that needs only a few pooled
+submaps (the paper's one submap, a tight region without the global merge) searches them alone
+when that scans fewer bytes than the whole pool (:data:`CALL_BYTES` per call counted).
+Measured on the maps of
 ``benchmarks/bench_core.py`` (512-D, one process, queries interleaved, load ~3): posterior with
 a VLM-like prior / one global search 1.12x with the pool of submaps up to 1,024 references,
 1.18x with a pool up to 256.
@@ -57,6 +60,9 @@ _ROW_BITS = 40  # (submap, row) packed in one int64 key: rows < 2**40, submaps <
 POOL_MAX_REFS = 1024
 POOL_MAX_BYTES = 64 * 2 ** 20  # the pooled copy's size limit (smallest submaps first)
 POOL_MAX_FP16_REFS = 8192  # fp16 is searched for all its rows: a heap that grows with them
+#: a FAISS call's fixed cost in bytes scanned (~25 us at ~10 GB/s): a query that needs a few
+#: pooled submaps searches them alone when that scans less than the whole pool (paper mode)
+CALL_BYTES = 256 * 2 ** 10
 
 
 def _empty() -> Hits:
@@ -121,8 +127,21 @@ class SmallSubmaps:
         self.is_pq = np.array([s.kind == "pq" for s in submaps], dtype=bool)
         self.pooled = np.zeros(len(submaps), dtype=bool)
         self.parts: list[tuple[str, Any, np.ndarray, np.ndarray]] = []
+        self.pool_bytes = 0  # what one scan of the pool reads
         if pool:
             self._build(submaps)
+            self.row_bytes = np.array([_dim_of(s) * (4 if s.kind == "flat" else 2)
+                                       if p else 0 for s, p in zip(submaps, self.pooled)])
+            self.counts = np.array([s.count for s in submaps], dtype=np.int64)
+            self.pool_bytes = sum(int(index.ntotal) * int(index.d) * (4 if kind == "flat"
+                                                                      else 2)
+                                  for kind, index, _, _ in self.parts)
+
+    def pays(self, members: np.ndarray) -> bool:
+        """Whether one scan of the pool costs less than searching these pooled submaps alone
+        (same hits either way: each submap's own distances)."""
+        alone = int((self.counts[members] * self.row_bytes[members]).sum())
+        return self.pool_bytes + CALL_BYTES <= alone + CALL_BYTES * len(members)
 
     def _build(self, submaps: Sequence[Any]) -> None:
         small = sorted((s.count, i) for i, s in enumerate(submaps)
@@ -192,6 +211,9 @@ class SubmapPass:
     def rank(self, *sets: Sequence[int]) -> list[Hits]:
         """The top-``k`` of each set of submap indices, best first (ties by submap, row)."""
         plans = [self._plan(s) for s in sets]
+        members = np.unique(np.concatenate([np.asarray(p, np.int64) for _, _, p in plans]))
+        if len(members) and not self.small.pays(members):  # a few small submaps: alone
+            plans = [(exact + pooled, pq, []) for exact, pq, pooled in plans]
         with one_faiss_thread():
             picks = [self._pick(pq) for _, pq, _ in plans]
             self._rerank(picks)
