@@ -287,4 +287,17 @@ CATALOGUE: dict[str, tuple[str, str, str]] = {
                                               "an interrupted `--images` run",
                                     "exit 2 naming `--resume`; `--overwrite` writes the results "
                                     "and removes the stale `.partial`"),
+    # -- round 4 (issue 28): stored files -------------------------------------------------------
+    "features_not_the_manifest": ("map", "`lf_rows`/`lf_kpts`/`lf_desc` given another "
+                                         "submap's bytes (same size), garbage in a small "
+                                         "`lf_kpts`, a wrong sha256 for `lf_desc`",
+                                  "refused at open naming the file; `localize` answers "
+                                  "flagged `unverified`, never verified from the wrong "
+                                  "features"),
+    "features_rewritten_while_open": ("map", "a feature file rewritten in place (same size) "
+                                             "while the store is open",
+                                      "refused naming the file until reloaded"),
+    "features_bad_caps": ("map", "`local_features.max_keypoints` -1, a submap missing from "
+                                 "the section", "MapError naming the map and the field; "
+                                                "advises `vlm-vpr build-map`"),
 }
