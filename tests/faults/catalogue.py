@@ -300,4 +300,11 @@ CATALOGUE: dict[str, tuple[str, str, str]] = {
     "features_bad_caps": ("map", "`local_features.max_keypoints` -1, a submap missing from "
                                  "the section", "MapError naming the map and the field; "
                                                 "advises `vlm-vpr build-map`"),
+    "lock_symlink_file": ("writers", "`PARENT/.MAP.lock` or `MAP/.edit.lock` a symbolic link "
+                                     "to a user's file, or dangling",
+                          "exit 2 naming the link; the file untouched, nothing created at "
+                          "the target"),
+    "out_save_matches": ("output", "`localize --save-matches X`: X an existing file, a folder "
+                                   "holding same-named pictures, a folder inside the map",
+                         "exit 2 before any query, nothing written (without --overwrite)"),
 }

@@ -121,3 +121,77 @@ def test_feature_caps_and_missing_section(map_copy):
     with pytest.raises(MapError) as ei:
         _open(m)
     assert "map features" not in str(ei.value) and "vlm-vpr build-map" in str(ei.value)
+
+
+# -- the writer lock never follows a symbolic link ---------------------------------------------
+@pytest.mark.fault("lock_symlink_file")
+def test_lock_file_symlink_never_followed(cli, map_copy, tmp_path, monkeypatch):
+    """`PARENT/.MAP.lock` or `MAP/.edit.lock` a symbolic link to a user's file, or dangling:
+    refused naming the link; the user's file untouched, nothing created at the target."""
+    from vlm_vpr_ros.files.lock import WriterLock
+
+    monkeypatch.setenv("VLM_VPR_LOCK_WAIT_S", "0")
+    ids = tmp_path / "ids.txt"
+    ids.write_text("x\n")
+    user = tmp_path / "user_notes.txt"
+    user.write_text("my precious notes\n")
+    before = sha_tree(map_copy)
+    for link in (tmp_path / ".map.lock", map_copy / ".edit.lock"):
+        for target in (user, tmp_path / "elsewhere" / "created.txt", tmp_path / "new.txt"):
+            (tmp_path / "elsewhere").mkdir(exist_ok=True)
+            link.symlink_to(target)
+            err = exit2(cli("map", "remove", map_copy, "--ids", ids), str(link),
+                        "symbolic link")
+            assert "Traceback" not in err
+            assert user.read_text() == "my precious notes\n"
+            assert not (tmp_path / "elsewhere" / "created.txt").exists()
+            assert not (tmp_path / "new.txt").exists()
+            assert link.is_symlink()  # the user's link is left for the user to remove
+            with pytest.raises(OSError, match="symbolic link"):
+                WriterLock(map_copy, "test", inside_ok=True).acquire()
+            link.unlink()
+    assert sha_tree(map_copy) == before
+    # a holder whose lock name was replaced by a link neither deletes nor writes through it
+    lock = WriterLock(map_copy, "test").acquire()
+    lp = tmp_path / ".map.lock"
+    lp.unlink()
+    lp.symlink_to(user)
+    assert lock.holder() == ""  # the holder line is never read through a link
+    lock.release()
+    assert lp.is_symlink() and user.read_text() == "my precious notes\n"
+    lp.unlink()
+    # the plain case still works: the lock file is made, then removed
+    rc, _, _ = cli("map", "remove", map_copy, "--ids", ids)
+    assert not lp.exists() and not (map_copy / ".edit.lock").exists()
+
+
+# -- --save-matches: checked before any work ----------------------------------------------------
+@pytest.mark.fault("out_save_matches")
+def test_save_matches_checked_before_any_work(cli, map_copy, demo_data, queries, tmp_path):
+    """`--save-matches X`: X an existing file, X a folder holding same-named pictures, X inside
+    the map: exit 2 before any query, nothing written; --overwrite replaces only the pictures."""
+    from vlm_vpr_ros.evaluation.matches import sheet_names
+
+    files = queries.read_text().split()[1:]
+    base = ["localize", "--map", map_copy, "--images", demo_data / "images", "--queries",
+            queries, "--prior", "none"]
+    mine = tmp_path / "notes.txt"
+    mine.write_text("mine\n")
+    out = tmp_path / "r.csv"
+    exit2(cli(*base, "--out", out, "--save-matches", mine), str(mine), "not a folder")
+    assert mine.read_text() == "mine\n" and not out.exists()
+    assert not out.with_name("r.csv.partial").exists()
+    folder = tmp_path / "pics"
+    folder.mkdir()
+    name = sheet_names(files)[files[0]]
+    (folder / name).write_bytes(b"my own picture")
+    (folder / "keep.txt").write_text("keep")
+    before = sha_tree(folder)
+    exit2(cli(*base, "--out", out, "--save-matches", folder), str(folder), name, "--overwrite")
+    assert sha_tree(folder) == before and not out.exists()
+    exit2(cli(*base, "--out", out, "--save-matches", map_copy / "pics"), "--save-matches",
+          "inside")
+    assert not (map_copy / "pics").exists()
+    # two queries whose names differ only in unsafe characters get two pictures
+    names = sheet_names(["a b.jpg", "a_b.jpg", "a b.jpg"])
+    assert len(set(names.values())) == 2 and names["a b.jpg"] != names["a_b.jpg"]
