@@ -38,7 +38,7 @@ PIECE = 8  # a secret of 16+ characters: any 8 of them in a row are masked
 
 _URL_USERINFO = re.compile(r"(?i)\b([a-z][a-z0-9+.-]*://)[^/@\s'\"]+@")
 _HEADER = re.compile(r"(?i)\b(authorization|proxy-authorization|x-api-key|api-key)"
-                     r"(['\"]?\s*[:=]\s*['\"]?)(?:bearer\s+|basic\s+)?[^\s'\",}]+")
+                     r"(['\"]?\s*[:=]\s*['\"]?)(?:bearer\s+|basic\s+)?[^\s'\",}&]+")
 _BEARER = re.compile(r"(?i)\b(bearer\s+)[A-Za-z0-9._~+/=-]{6,}")
 # a ``name: value`` pair whose name ends in a secret word (``client_secret``, ``secret_key``;
 # not ``token_param`` or ``max_tokens``); not a ``$NAME`` / ``${NAME}`` reference to a

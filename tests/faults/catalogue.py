@@ -307,4 +307,22 @@ CATALOGUE: dict[str, tuple[str, str, str]] = {
     "out_save_matches": ("output", "`localize --save-matches X`: X an existing file, a folder "
                                    "holding same-named pictures, a folder inside the map",
                          "exit 2 before any query, nothing written (without --overwrite)"),
+    # -- round 4 (issue 28): VLM answers and secrets ------------------------------------------
+    "answer_cut_or_ambiguous": ("answer", "answer cut at the token limit (`finish_reason: "
+                                          "length`) holding only a guess being weighed; "
+                                          "\"either Paris {…} or San Francisco {…}\"",
+                                "`truncated` / `suspicious_ambiguous`: not a prior (the read "
+                                "position kept for audit)"),
+    "vlm_not_an_api": ("vlm", "200 `text/html` login page; `content: null` with the answer "
+                              "only in `reasoning`; 150 response headers",
+                       "`bad_response` / `reasoning_only` with one line naming the content "
+                       "type or the fault, not `connection_error`"),
+    "vlm_body_cut": ("vlm", "body cut off before its Content-Length",
+                     "retried like a transport error (`connection_error`), the retry's "
+                     "answer used"),
+    "secret_query_and_encodings": ("secret", "`?subscription-key=…` in the base URL; a 400 "
+                                             "body echoing the key base64-encoded, "
+                                             "upper-cased, split in two",
+                                   "masked in logs at every level, stderr, --json and the "
+                                   "answer cache"),
 }
