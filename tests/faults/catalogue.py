@@ -325,4 +325,8 @@ CATALOGUE: dict[str, tuple[str, str, str]] = {
                                              "upper-cased, split in two",
                                    "masked in logs at every level, stderr, --json and the "
                                    "answer cache"),
+    "pose_fixed_zone_far": ("node", "fixed `utm_zone` with fixes 85-180 deg of longitude "
+                                    "away; a `local_enu` datum ~7,000 km from the fix",
+                            "no pose, the reason named (ConfigError), never finite "
+                            "nonsense; neighbouring zones still served"),
 }

@@ -195,3 +195,29 @@ def test_save_matches_checked_before_any_work(cli, map_copy, demo_data, queries,
     # two queries whose names differ only in unsafe characters get two pictures
     names = sheet_names(["a b.jpg", "a_b.jpg", "a b.jpg"])
     assert len(set(names.values())) == 2 and names["a b.jpg"] != names["a_b.jpg"]
+
+
+# -- metric frames: a far fix gets no pose ----------------------------------------------------
+@pytest.mark.fault("pose_fixed_zone_far")
+def test_fixed_zone_or_datum_far_from_the_fix_gives_no_pose():
+    """A fixed `utm_zone` with fixes 85-180 deg of longitude away, a local_enu datum 7,000 km
+    away: refused with the reason (no pose), never finite nonsense; near fixes still served."""
+    from pyproj import Transformer
+
+    from vlm_vpr_ros.errors import ConfigError
+    from vlm_vpr_ros.runtime.metric_frame import MetricFrame
+
+    f = MetricFrame("utm", zone=31)  # central meridian 3 E
+    for lon in (88.0, 120.0, 183.0 - 360.0, -177.0, 180.0):
+        with pytest.raises(ConfigError, match="fixed UTM zone 31"):
+            f.pose(10.0, lon, 0.0, (1.0, 0, 0, 0, 1.0, 0, 0, 0, 4.0))
+    # neighbours of the zone: served, and equal to PROJ's own transverse Mercator
+    ref = Transformer.from_crs("EPSG:4326", "EPSG:32631", always_xy=True)
+    for lon in (-2.9, 8.9, 14.5):
+        x, y, _ = f.project(48.0, lon, 0.0)
+        assert (x, y) == pytest.approx(ref.transform(lon, 48.0), abs=1e-6)
+    enu = MetricFrame("local_enu", datum=(-31.95, 115.86))  # Perth
+    with pytest.raises(ConfigError, match="km from the local_enu datum"):
+        enu.project(9.93, 76.26, 0.0)  # Kochi, Kerala: ~7,000 km
+    x, y, _ = enu.project(-31.95 + 0.01, 115.86, 0.0)
+    assert abs(x) < 1.0 and 1100 < y < 1120
