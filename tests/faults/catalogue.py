@@ -329,4 +329,10 @@ CATALOGUE: dict[str, tuple[str, str, str]] = {
                                     "away; a `local_enu` datum ~7,000 km from the fix",
                             "no pose, the reason named (ConfigError), never finite "
                             "nonsense; neighbouring zones still served"),
+    # -- round 4 (issue 28): scoring inputs ----------------------------------------------------
+    "calibrate_junk_rows": ("csv", "`calibrate`: one wrong row repeated 20 times; a file twice "
+                                   "with other values; `inlier_ratio` -3 / nan / 2, "
+                                   "`p_correct` 2, latitude 91, status `FIX`",
+                            "a repeat counts once (warning with the lines); the others exit 2 "
+                            "naming file:line and the field, map unchanged"),
 }

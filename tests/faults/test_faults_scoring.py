@@ -1,0 +1,66 @@
+"""Round 4 (issue 28), scoring inputs: `calibrate` and `evaluate` count every row once and
+refuse (or count and report) junk rows instead of scoring them."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+
+import pytest
+
+from faults.conftest import exit2, sha_tree
+
+FIELDS = ["file", "lat", "lon", "uncertainty_m", "radius95_m", "flags", "status", "p_correct",
+          "inlier_ratio"]
+
+
+def _coords(demo_data, n):
+    return [(r["file"], float(r["lat"]), float(r["lon"]))
+            for r in list(csv.DictReader(open(demo_data / "coords.csv")))[:n]]
+
+
+def _write(path, rows):
+    with open(path, "w", newline="") as fh:
+        w = csv.DictWriter(fh, FIELDS)
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: r.get(k, "") for k in FIELDS})
+    return path
+
+
+@pytest.mark.fault("calibrate_junk_rows")
+def test_calibrate_counts_each_row_once_and_refuses_junk(cli, map_copy, demo_data, tmp_path):
+    """One wrong answer repeated 20 times counts once (warning with the lines); a file given
+    twice with other values, `inlier_ratio` -3 / nan / 2, `p_correct` 2, latitude 91, status
+    `FIX`: exit 2 naming file:line and the field, the map unchanged."""
+    from vlm_vpr_ros.localization.verification.calibration import load_doc
+    from vlm_vpr_ros.maps.reference_map import ReferenceMap
+
+    pts = _coords(demo_data, 12)
+    gt = tmp_path / "gt.csv"
+    gt.write_text("file,lat,lon\n" + "".join(f"{f},{a},{b}\n" for f, a, b in pts))
+    rows = [{"file": f, "lat": a, "lon": b, "status": "fix", "inlier_ratio": 0.5 + k / 100}
+            for k, (f, a, b) in enumerate(pts)]
+    wrong = {**rows[0], "lat": pts[0][1] + 0.05, "status": "no_fix", "inlier_ratio": 0.2}
+    res = _write(tmp_path / "r.csv", [wrong] * 20 + rows[1:])
+    assert cli("calibrate", "--map", map_copy, "--results", res, "--ground-truth", gt)[0] == 0
+    assert "20 repeated" not in cli.text and "19 repeated file row(s) kept once" in cli.text
+    doc = load_doc(ReferenceMap.load(map_copy))
+    assert doc["user"]["null_scores"] == [0.2] and doc["user"]["queries"] == 12
+    before = sha_tree(map_copy)
+    bad_cases = [
+        ([wrong, {**wrong, "inlier_ratio": 0.9}] + rows[1:], ["lines 2 and 3", "file"]),
+        ([{**wrong, "inlier_ratio": -3}] + rows[1:], ["r.csv:2", "inlier_ratio", "-3"]),
+        (rows[:5] + [{**wrong, "inlier_ratio": "nan"}] + rows[6:], ["r.csv:7", "inlier_ratio"]),
+        (rows[1:] + [{**wrong, "inlier_ratio": 2}], ["r.csv:13", "inlier_ratio"]),
+        (rows[1:] + [{**wrong, "p_correct": 2}], ["r.csv:13", "p_correct"]),
+        (rows[1:] + [{**wrong, "lat": 91}], ["r.csv:13", "latitude 91"]),
+        (rows[1:] + [{**wrong, "status": "FIX"}], ["r.csv:13", "status 'FIX'"]),
+        (rows[1:] + [{**wrong, "uncertainty_m": -5}], ["r.csv:13", "uncertainty_m"]),
+    ]
+    for bad, needles in bad_cases:
+        _write(res, bad)
+        exit2(cli("calibrate", "--map", map_copy, "--results", res, "--ground-truth", gt),
+              *needles)
+    assert sha_tree(map_copy) == before
