@@ -331,8 +331,13 @@ CATALOGUE: dict[str, tuple[str, str, str]] = {
                             "nonsense; neighbouring zones still served"),
     # -- round 4 (issue 28): scoring inputs ----------------------------------------------------
     "calibrate_junk_rows": ("csv", "`calibrate`: one wrong row repeated 20 times; a file twice "
-                                   "with other values; `inlier_ratio` -3 / nan / 2, "
+                                   "with other values; `inlier_ratio` -3 / nan / 1e999, "
                                    "`p_correct` 2, latitude 91, status `FIX`",
                             "a repeat counts once (warning with the lines); the others exit 2 "
                             "naming file:line and the field, map unchanged"),
+    "evaluate_junk_rows": ("csv", "`evaluate`: latitude 91 / 1e999 / nan, status `FIX` / "
+                                  "`bogus`, `p_correct` 2 / -1, a file repeated; the results "
+                                  "given as their own ground truth",
+                           "junk rows counted and reported by reason (file:line), not "
+                           "scored; same file: exit 2; `flagged` = a fallback flag"),
 }

@@ -32,7 +32,7 @@ def _write(path, rows):
 @pytest.mark.fault("calibrate_junk_rows")
 def test_calibrate_counts_each_row_once_and_refuses_junk(cli, map_copy, demo_data, tmp_path):
     """One wrong answer repeated 20 times counts once (warning with the lines); a file given
-    twice with other values, `inlier_ratio` -3 / nan / 2, `p_correct` 2, latitude 91, status
+    twice with other values, `inlier_ratio` -3 / nan / 1e999, `p_correct` 2, latitude 91, status
     `FIX`: exit 2 naming file:line and the field, the map unchanged."""
     from vlm_vpr_ros.localization.verification.calibration import load_doc
     from vlm_vpr_ros.maps.reference_map import ReferenceMap
@@ -53,7 +53,7 @@ def test_calibrate_counts_each_row_once_and_refuses_junk(cli, map_copy, demo_dat
         ([wrong, {**wrong, "inlier_ratio": 0.9}] + rows[1:], ["lines 2 and 3", "file"]),
         ([{**wrong, "inlier_ratio": -3}] + rows[1:], ["r.csv:2", "inlier_ratio", "-3"]),
         (rows[:5] + [{**wrong, "inlier_ratio": "nan"}] + rows[6:], ["r.csv:7", "inlier_ratio"]),
-        (rows[1:] + [{**wrong, "inlier_ratio": 2}], ["r.csv:13", "inlier_ratio"]),
+        (rows[1:] + [{**wrong, "inlier_ratio": "1e999"}], ["r.csv:13", "inlier_ratio"]),
         (rows[1:] + [{**wrong, "p_correct": 2}], ["r.csv:13", "p_correct"]),
         (rows[1:] + [{**wrong, "lat": 91}], ["r.csv:13", "latitude 91"]),
         (rows[1:] + [{**wrong, "status": "FIX"}], ["r.csv:13", "status 'FIX'"]),
@@ -64,3 +64,40 @@ def test_calibrate_counts_each_row_once_and_refuses_junk(cli, map_copy, demo_dat
         exit2(cli("calibrate", "--map", map_copy, "--results", res, "--ground-truth", gt),
               *needles)
     assert sha_tree(map_copy) == before
+
+
+@pytest.mark.fault("evaluate_junk_rows")
+def test_evaluate_counts_and_reports_junk(cli, demo_data, tmp_path):
+    """Rows with latitude 91, 1e999 or nan, status `FIX` / `bogus`, `p_correct` 2 / -1, a file
+    repeated: counted and reported as junk, never scored; the results given as their own
+    ground truth: refused; `flagged` means a fallback flag (not `verified`)."""
+    pts = _coords(demo_data, 10)
+    gt = tmp_path / "gt.csv"
+    gt.write_text("file,lat,lon\n" + "".join(f"{f},{a},{b}\n" for f, a, b in pts))
+    good = [{"file": f, "lat": a, "lon": b, "status": "fix", "p_correct": 0.99,
+             "uncertainty_m": 30, "flags": "verified"} for f, a, b in pts[:4]]
+    good.append({"file": pts[4][0], "lat": "", "lon": "", "status": "no_fix",
+                 "flags": "no_match"})  # no answer: a miss, flagged
+    junk = [{**good[0], "file": pts[5][0], "lat": 91}, {**good[0], "file": pts[6][0],
+                                                        "lat": "1e999"},
+            {**good[0], "file": pts[7][0], "lon": "nan"}, {**good[0], "file": pts[8][0],
+                                                           "status": "FIX"},
+            {**good[0], "file": pts[9][0], "status": "bogus"},
+            {**good[0], "p_correct": 2}, {**good[1], "p_correct": -1},
+            {**good[2], "lat": 0.0, "lon": 0.0}]  # pts[2] again, another answer
+    res = _write(tmp_path / "r.csv", good + junk)
+    rc, out, _ = cli("evaluate", "--results", res, "--ground-truth", gt, "--json")
+    s = json.loads(out)
+    assert rc == 0 and s["n"] == 5 and s["junk_rows"] == len(junk)
+    assert s["junk"] == {"coords": 3, "status": 2, "p_correct": 2, "repeated": 1}
+    assert s["accuracy"]["1km"] == pytest.approx(80.0)  # 4 of 5 right; the repeat not scored
+    assert s["fixes"]["n"] == 4 and s["flagged"] == 1  # `verified` alone is not flagged
+    rc, out, _ = cli("evaluate", "--results", res, "--ground-truth", gt)
+    assert rc == 0 and "junk rows, counted but not scored: 8" in out and "r.csv:7" in out
+    assert "r.csv:7" in cli.text and "WARNING" not in out
+    exit2(cli("evaluate", "--results", res, "--ground-truth", res), "same file")
+    # the streamed reader keeps the strict CSV rules
+    (tmp_path / "nul.csv").write_bytes(b"file,lat,lon\n" + b"a.jpg,1,2\n" * 3 + b"b\x00,1,2\n")
+    exit2(cli("evaluate", "--results", tmp_path / "nul.csv", "--ground-truth", gt),
+          "nul.csv:5", "NUL")
+    assert math.isfinite(s["median_km"])

@@ -56,8 +56,9 @@ STATUSES = ("", "fix", "no_fix")
 def results_rows(results_csv, required=("file", "lat", "lon")) -> list[dict[str, str]]:
     """The rows of a results CSV of ``vlm-vpr localize``, checked before they count: a row
     repeated is kept once (warning with the line numbers), a file given twice with other
-    values, a latitude/longitude out of range, a non-finite or negative radius, an
-    ``inlier_ratio`` / ``p_correct`` outside 0..1 (or ``nan``) and an unknown ``status`` are a
+    values, a latitude/longitude out of range, a non-finite or negative radius or
+    ``inlier_ratio`` (the evidence score, >= 0), a ``p_correct`` outside 0..1, ``nan`` anywhere
+    and an unknown ``status`` are a
     DataError naming ``file:line`` and the field (one wrong answer must not count 20 times,
     nor a made-up score move ``p_correct``)."""
     from vlm_vpr_ros.files.csvio import parse_latlon, parse_number, read_rows, unique_rows
@@ -69,7 +70,7 @@ def results_rows(results_csv, required=("file", "lat", "lon")) -> list[dict[str,
         if (row.get("lat") or "").strip() or (row.get("lon") or "").strip():
             parse_latlon(row.get("lat"), row.get("lon"), where)
         for field, lo, hi in (("uncertainty_m", 0.0, math.inf), ("radius95_m", 0.0, math.inf),
-                              ("inlier_ratio", 0.0, 1.0), ("p_correct", 0.0, 1.0)):
+                              ("inlier_ratio", 0.0, math.inf), ("p_correct", 0.0, 1.0)):
             value = (row.get(field) or "").strip()
             if value and not lo <= parse_number(value, where, field) <= hi:
                 raise DataError(f"{where}: {field} {value} is out of range [{lo:g}, {hi:g}]")

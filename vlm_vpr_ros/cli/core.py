@@ -387,7 +387,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         json.dump({**summary, "recall_pct": extra["recall_pct"], "fixes": extra["fixes"],
                    "coverage68_pct": round(extra["coverage_pct"], 2),
                    "coverage95_pct": (None if extra["coverage95_pct"] is None
-                                      else round(extra["coverage95_pct"], 2))}, sys.stdout)
+                                      else round(extra["coverage95_pct"], 2)),
+                   "flagged": extra["flagged"], "missing_gt": extra["missing_gt"],
+                   "junk_rows": extra["junk_rows"], "junk": extra["junk"]}, sys.stdout)
         sys.stdout.write("\n")
         return 0
     print(format_table({"results": summary}, title=f"accuracy of {args.results}"))
@@ -395,8 +397,14 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     print(f"coverage: the 68 % radius (uncertainty_m) holds the truth in "
           f"{extra['coverage_pct']:.1f}% of rows, the 95 % radius (radius95_m) in "
           + ("- (no radius95_m column)" if c95 is None else f"{c95:.1f}%")
-          + f"; {extra['flagged']} flagged rows; {extra['missing_gt']} rows without ground "
-          "truth")
+          + f"; {extra['flagged']} flagged rows (a fallback flag); {extra['missing_gt']} rows "
+          "without ground truth")
+    if extra["junk_rows"]:
+        from vlm_vpr_ros.evaluation.results_csv import JUNK
+
+        print(f"junk rows, counted but not scored: {extra['junk_rows']} ("
+              + ", ".join(f"{JUNK[k]}: {v}" for k, v in extra["junk"].items())
+              + f"); e.g. {extra['junk_examples'][0]}")
     rec, fx = extra["recall_pct"], extra["fixes"]
     print("recall within 25 m: " + ("- (no top_positions column)" if rec is None else
                                     "  ".join(f"R{k} {v:.1f}%" for k, v in rec.items())))
