@@ -340,4 +340,7 @@ CATALOGUE: dict[str, tuple[str, str, str]] = {
                                   "given as their own ground truth",
                            "junk rows counted and reported by reason (file:line), not "
                            "scored; same file: exit 2; `flagged` = a fallback flag"),
+    "writers_symlink_names": ("writers", "a symbolic link to a user's file at an output "
+                                         "marker's name or a writer's temporary name",
+                              "replaced, never followed: the user's file untouched"),
 }

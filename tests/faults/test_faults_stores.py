@@ -221,3 +221,34 @@ def test_fixed_zone_or_datum_far_from_the_fix_gives_no_pose():
         enu.project(9.93, 76.26, 0.0)  # Kochi, Kerala: ~7,000 km
     x, y, _ = enu.project(-31.95 + 0.01, 115.86, 0.0)
     assert abs(x) < 1.0 and 1100 < y < 1120
+
+
+@pytest.mark.fault("writers_symlink_names")
+def test_writers_replace_links_never_follow_them(tmp_path):
+    """A symbolic link to a user's file left at an output marker's name or at a writer's
+    temporary name (feature files: `.NAME.tmpPID`): the user's file untouched, the output a
+    regular file."""
+    from vlm_vpr_ros.files.outputs import MARKER, write_marker
+    from vlm_vpr_ros.maps.features import feature_files, write_submap_features
+    from vlm_vpr_ros.types import LocalFeatures
+
+    user = tmp_path / "user.txt"
+    user.write_text("precious\n")
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / MARKER).symlink_to(user)
+    write_marker(out, "bag")
+    assert user.read_text() == "precious\n"
+    assert not (out / MARKER).is_symlink() and json.loads((out / MARKER).read_text())["kind"]
+    root = tmp_path / "map"
+    (root / "submaps").mkdir(parents=True)
+    rels = feature_files("k000")
+    for rel in rels.values():
+        p = root / rel
+        p.with_name(f".{p.name}.tmp{os.getpid()}").symlink_to(user)
+    feats = [LocalFeatures(np.ones((3, 2), np.float32), np.ones((3, 128), np.uint8), (64, 48))]
+    write_submap_features(root, "k000", feats, np.dtype(np.uint8), 128)
+    assert user.read_text() == "precious\n"
+    for rel in rels.values():
+        assert (root / rel).is_file() and not (root / rel).is_symlink()
+    assert np.load(root / rels["keypoints"]).shape == (3, 2)

@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import Callable, Iterable
 
 from vlm_vpr_ros.errors import OutputError
-from vlm_vpr_ros.files.atomic import describe_os_error
+from vlm_vpr_ros.files.atomic import atomic_write_text, describe_os_error
 from vlm_vpr_ros.files.lock import WriterLock, inside_lock
 
 log = logging.getLogger(__name__)
@@ -90,8 +90,10 @@ def _shards_meta(path: Path) -> bool:
 def write_marker(folder: Path, kind: str) -> None:
     from vlm_vpr_ros import __version__
 
-    (folder / MARKER).write_text(json.dumps({"kind": kind, "tool": "vlm_vpr_ros",
-                                             "version": __version__}) + "\n", encoding="utf-8")
+    # through a new file moved into place: a symbolic link at the name is replaced, never
+    # followed (the folder may be a resumed one that was not created by this process)
+    atomic_write_text(folder / MARKER, json.dumps({"kind": kind, "tool": "vlm_vpr_ros",
+                                                   "version": __version__}) + "\n")
 
 
 _WHAT = {"map": "a map (no vlm_vpr_ros manifest.json)",

@@ -63,6 +63,8 @@ def _open_npy(path: Path, dtype: np.dtype, shape: tuple[int, ...]) -> np.ndarray
     from numpy.lib.format import open_memmap
 
     path.parent.mkdir(parents=True, exist_ok=True)
+    if os.path.lexists(path):  # a temporary name: never written through a link left there
+        os.unlink(path)
     return open_memmap(path, mode="w+", dtype=dtype, shape=shape)
 
 
