@@ -343,4 +343,10 @@ CATALOGUE: dict[str, tuple[str, str, str]] = {
     "writers_symlink_names": ("writers", "a symbolic link to a user's file at an output "
                                          "marker's name or a writer's temporary name",
                               "replaced, never followed: the user's file untouched"),
+    "evaluate_streams": ("resource", "`evaluate` of 400,000 results rows",
+                         "streamed: < 250 MB peak, numbers equal to an independent count "
+                         "(2,000,000 rows: benchmarks/bench_evaluate.py)"),
+    "out_details_csv": ("output", "`priors score --details X`: X a user's CSV, a folder, the "
+                                  "answers or ground truth themselves",
+                        "exit 2 before any work, untouched; a details CSV of ours replaced"),
 }

@@ -101,3 +101,45 @@ def test_evaluate_counts_and_reports_junk(cli, demo_data, tmp_path):
     exit2(cli("evaluate", "--results", tmp_path / "nul.csv", "--ground-truth", gt),
           "nul.csv:5", "NUL")
     assert math.isfinite(s["median_km"])
+
+
+@pytest.mark.fault("evaluate_streams")
+def test_evaluate_streams_large_results(tmp_path):
+    """400,000 rows (the generator of benchmarks/bench_evaluate.py): `evaluate` in a child
+    process stays under 250 MB peak (rows held as dicts took ~1 KB each: ~400 MB here) and its
+    numbers match an independent count over the same file."""
+    import importlib.util
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    repo = Path(__file__).resolve().parents[2]
+    spec = importlib.util.spec_from_file_location("bench_evaluate",
+                                                  repo / "benchmarks" / "bench_evaluate.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    n = 400_000
+    res, gt = bench.generate(tmp_path, n)
+    run = ("import resource, sys\nfrom vlm_vpr_ros.cli import main\nrc = main(sys.argv[1:])\n"
+           "sys.stderr.write(f'MAXRSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss}')\n"
+           "sys.exit(rc)")
+    proc = subprocess.run([sys.executable, "-c", run, "evaluate", "--results", str(res),
+                           "--ground-truth", str(gt), "--json"], capture_output=True,
+                          text=True, timeout=600, env={**os.environ, "PYTHONPATH": str(repo)})
+    assert proc.returncode == 0, proc.stderr
+    peak_mb = int(proc.stderr.rsplit("MAXRSS ", 1)[1].split()[0]) / 1024.0
+    s = json.loads(proc.stdout)
+    truth = {r["file"]: (float(r["lat"]), float(r["lon"])) for r in csv.DictReader(open(gt))}
+    ok = junk = fixes = 0
+    for r in csv.DictReader(open(res)):
+        if r["lat"] and not (abs(float(r["lat"])) <= 90 and abs(float(r["lon"])) <= 180):
+            junk += 1
+            continue
+        fixes += r["status"] == "fix"
+        if r["lat"]:
+            t = truth[r["file"]]
+            ok += math.dist((float(r["lat"]), float(r["lon"])), t) < 0.005  # ~0.5 km
+    assert s["junk_rows"] == junk and s["n"] == n - junk and s["fixes"]["n"] == fixes
+    assert s["accuracy"]["1km"] == pytest.approx(100.0 * ok / (n - junk), abs=0.05)
+    assert peak_mb < 250, peak_mb

@@ -252,3 +252,24 @@ def test_writers_replace_links_never_follow_them(tmp_path):
     for rel in rels.values():
         assert (root / rel).is_file() and not (root / rel).is_symlink()
     assert np.load(root / rels["keypoints"]).shape == (3, 2)
+
+
+@pytest.mark.fault("out_details_csv")
+def test_priors_score_details_checked_before_any_work(cli, tmp_path):
+    """`priors score --details X`: X a user's file, a folder, or the answers / ground truth
+    themselves: exit 2 before any work, untouched; a details CSV written before is replaced."""
+    (tmp_path / "a.csv").write_text('filename,response\na.jpg,"48.85, 2.35"\n')
+    (tmp_path / "gt.csv").write_text("file,lat,lon\na.jpg,48.85,2.35\n")
+    mine = tmp_path / "notes.csv"
+    mine.write_text("my,own\n1,2\n")
+    base = ["priors", "score", "--answers", tmp_path / "a.csv", "--ground-truth",
+            tmp_path / "gt.csv", "--details"]
+    before = sha_tree(tmp_path)
+    exit2(cli(*base, mine), str(mine), "left untouched")
+    exit2(cli(*base, tmp_path), "is a folder")
+    exit2(cli(*base, tmp_path / "gt.csv"), "is the input")
+    exit2(cli(*base, tmp_path / "a.csv"), "is the input")
+    assert sha_tree(tmp_path) == before
+    out = tmp_path / "d.csv"
+    assert cli(*base, out)[0] == 0 and cli(*base, out)[0] == 0  # ours: replaced
+    assert list(csv.DictReader(out.open()))[0]["file"] == "a.jpg"

@@ -55,8 +55,7 @@ def _number_reader() -> Callable[[str], float | None]:
     return num
 
 
-def _base_hash(name: str, h: int) -> int:
-    return hash(os.path.basename(name)) if "/" in name else h
+_CHUNK = 1 << 18  # rows per vectorized step (bounded temporaries)
 
 
 class GroundTruth:
@@ -65,7 +64,8 @@ class GroundTruth:
     def __init__(self, path: Any) -> None:
         self.path = path
         num = _number_reader()
-        hashes, bases, coords, lines = array("q"), array("q"), array("d"), array("q")
+        hashes, coords, lines = array("q"), array("d"), array("q")
+        base_rows, bases = array("q"), array("q")  # only names with a folder part
         with stream_rows(path, "ground truth CSV") as (cols, rows):
             for names in (("file", "lat", "lon"), ("IMG_ID", "LAT", "LON")):
                 if set(names) <= set(cols):
@@ -82,9 +82,11 @@ class GroundTruth:
                 if la is None or lo is None or not (-90.0 <= la <= 90.0
                                                     and -180.0 <= lo <= 180.0):
                     parse_latlon(row[ai], row[oi], f"{path}:{line}")  # the error, named
-                h = hash(row[fi])
-                hashes.append(h)
-                bases.append(_base_hash(row[fi], h))
+                name = row[fi]
+                if "/" in name:
+                    base_rows.append(len(lines))
+                    bases.append(hash(os.path.basename(name)))
+                hashes.append(hash(name))
                 coords.extend((la, lo))
                 lines.append(line)
         self.coords = np.frombuffer(coords, dtype=np.float64).reshape(-1, 2)
@@ -102,13 +104,16 @@ class GroundTruth:
             keep[d + 1] = False
         if not keep.all():
             log.warning("%s: %d repeated file row(s) kept once", path, int((~keep).sum()))
-        self._keys, self._rows = hs[keep], order[keep]
+            hs, order = hs[keep], order[keep]
+        self._keys, self._rows = hs, order
+        del h, line_of, keep
         b = np.frombuffer(bases, dtype=np.int64)
         border = np.argsort(b, kind="stable")  # the first row of each base name
         bs = b[border]
         first = np.ones(len(bs), dtype=bool)
         first[1:] = bs[1:] != bs[:-1]
-        self._bkeys, self._brows = bs[first], border[first]
+        self._bkeys = bs[first]
+        self._brows = np.frombuffer(base_rows, dtype=np.int64)[border[first]]
 
     def _name(self, col: int, line: int) -> str:
         with stream_rows(self.path) as (_, rows):
@@ -121,13 +126,19 @@ class GroundTruth:
         pos = np.minimum(np.searchsorted(keys, q), len(keys) - 1)
         return np.where(keys[pos] == q, rows[pos], -1)
 
-    def lookup(self, names: np.ndarray, bases: np.ndarray) -> np.ndarray:
-        """Ground-truth row of each results row (by name hash, then base name); -1: none."""
-        g = self._find(self._keys, self._rows, names)
-        miss = g < 0
-        g[miss] = self._find(self._keys, self._rows, bases[miss])
-        miss = g < 0
-        g[miss] = self._find(self._bkeys, self._brows, bases[miss])
+    def lookup(self, names: np.ndarray, base_rows: np.ndarray, bases: np.ndarray
+               ) -> np.ndarray:
+        """Ground-truth row of each results row: by its name, else (``base_rows``: the rows
+        whose name has a folder part, ``bases``: their base names' hashes) by its base name;
+        -1: none."""
+        g = np.empty(len(names), dtype=np.int64)
+        for a in range(0, len(names), _CHUNK):  # bounded temporaries
+            g[a:a + _CHUNK] = self._find(self._keys, self._rows, names[a:a + _CHUNK])
+        miss = g[base_rows] < 0
+        rows, q = base_rows[miss], bases[miss]
+        found = self._find(self._keys, self._rows, q)
+        found = np.where(found >= 0, found, self._find(self._bkeys, self._brows, q))
+        g[rows] = found
         return g
 
 
@@ -143,7 +154,8 @@ def evaluate_stream(results_csv: Any, ground_truth_csv: Any,
                             "results scored against themselves would be 100 % right")
     truth = GroundTruth(ground_truth_csv)
     num, nan, inf = _number_reader(), math.nan, math.inf
-    names, bases, lines = array("q"), array("q"), array("q")
+    names, lines = array("q"), array("q")
+    base_rows, bases = array("q"), array("q")  # rows whose file name has a folder part
     est, radii, flags = array("d"), array("d"), array("b")
     junk: dict[str, int] = dict.fromkeys(JUNK, 0)
     examples: list[tuple[int, str]] = []
@@ -181,9 +193,11 @@ def evaluate_stream(results_csv: Any, ground_truth_csv: Any,
                 if len(examples) < 5:
                     examples.append((line, why))
                 continue
-            h = hash(row[c_file])
-            names.append(h)
-            bases.append(_base_hash(row[c_file], h))
+            name = row[c_file]
+            if "/" in name:
+                base_rows.append(len(lines))
+                bases.append(hash(os.path.basename(name)))
+            names.append(hash(name))
             lines.append(line)
             est.extend((la, lo))
             radii.extend((r68, r95))
@@ -191,25 +205,46 @@ def evaluate_stream(results_csv: Any, ground_truth_csv: Any,
             has_status = has_status or bool(st)
             flagged = c_fl is not None and not FALLBACK_FLAGS.isdisjoint(row[c_fl].split("|"))
             flags.append((st == "fix") | (flagged << 1))
-    g = truth.lookup(np.frombuffer(names, dtype=np.int64), np.frombuffer(bases, dtype=np.int64))
+    g = truth.lookup(np.frombuffer(names, dtype=np.int64),
+                     np.frombuffer(base_rows, dtype=np.int64), np.frombuffer(bases, dtype=np.int64))
+    del names, bases, base_rows
     line_of = np.frombuffer(lines, dtype=np.int64)
-    found = np.flatnonzero(g >= 0)
-    _, first = np.unique(g[found], return_index=True)
-    sel = found[np.sort(first)]  # rows scored: ground truth known, file not scored before
-    again = np.setdiff1d(found, sel)
-    junk["repeated"] = len(again)
-    examples += [(int(line_of[k]), "repeated") for k in again[:5]]
+    keep = np.zeros(len(g), dtype=bool)  # the first row of each file with ground truth
+    seen = np.zeros(len(truth.coords), dtype=bool)
+    for a in range(0, len(g), _CHUNK):  # bounded temporaries
+        gc = g[a:a + _CHUNK]
+        idx = np.flatnonzero(gc >= 0)
+        _, first = np.unique(gc[idx], return_index=True)
+        cand = idx[first]
+        new = cand[~seen[gc[cand]]]
+        keep[a + new] = True
+        seen[gc[cand]] = True
+    del seen
+    sel = np.flatnonzero(keep)  # rows scored: ground truth known, file not scored before
+    matched = int(np.count_nonzero(g >= 0))
+    missing = len(g) - matched
+    junk["repeated"] = matched - len(sel)
+    if junk["repeated"]:
+        again = np.flatnonzero((g >= 0) & ~keep)[:5]
+        examples += [(int(line_of[k]), "repeated") for k in again]
     examples = sorted(examples)[:5]
-    e = np.frombuffer(est, dtype=np.float64).reshape(-1, 2)[sel]
-    r = np.frombuffer(radii, dtype=np.float64).reshape(-1, 2)[sel]
+    del keep
+    est_a = np.frombuffer(est, dtype=np.float64).reshape(-1, 2)
+    rad_a = np.frombuffer(radii, dtype=np.float64).reshape(-1, 2)
     fl = np.frombuffer(flags, dtype=np.int8)[sel]
-    gt = truth.coords[g[sel]]
+    gsel = g[sel]
+    del g
     n = len(sel)
+    errs = np.empty(n, dtype=np.float64)
+    covered = [0, 0]
     with np.errstate(invalid="ignore"):
-        errs = np.asarray(haversine_km(e[:, 0], e[:, 1], gt[:, 0], gt[:, 1]),
-                          dtype=np.float64).reshape(-1)
-        cov = [100.0 * float(np.sum(errs * 1000.0 <= r[:, k])) / n if n else 0.0
-               for k in (0, 1)]
+        for a in range(0, n, _CHUNK):  # bounded temporaries
+            rows, gt = sel[a:a + _CHUNK], truth.coords[gsel[a:a + _CHUNK]]
+            e = est_a[rows]
+            errs[a:a + _CHUNK] = haversine_km(e[:, 0], e[:, 1], gt[:, 0], gt[:, 1])
+            for k in (0, 1):
+                covered[k] += int(np.sum(errs[a:a + _CHUNK] * 1000.0 <= rad_a[rows, k]))
+    cov = [100.0 * c / n if n else 0.0 for c in covered]
     fixes = None
     if has_status:
         fix = (fl & 1).astype(bool)
@@ -220,8 +255,8 @@ def evaluate_stream(results_csv: Any, ground_truth_csv: Any,
                     else None)
         fixes = {"n": nf, "rate_pct": round(100.0 * nf / n, 2) if n else 0.0,
                  "precision25_pct": precision(25.0), "precision50_pct": precision(50.0)}
-    recall = (_recall(results_csv, c_top, line_of[sel], gt) if c_top is not None and n
-              else None)
+    recall = (_recall(results_csv, c_top, line_of[sel], truth.coords[gsel])
+              if c_top is not None and n else None)
     bad = {k: v for k, v in junk.items() if v}
     shown = [f"{results_csv}:{ln} ({JUNK[w]})" for ln, w in examples]
     if bad:
@@ -229,7 +264,7 @@ def evaluate_stream(results_csv: Any, ground_truth_csv: Any,
                     sum(bad.values()), ", ".join(f"{JUNK[k]} {v}" for k, v in bad.items()),
                     shown[0])
     extra = {"coverage_pct": cov[0], "coverage95_pct": cov[1] if has95 else None,
-             "flagged": int(((fl >> 1) & 1).sum()), "missing_gt": len(g) - len(found),
+             "flagged": int(((fl >> 1) & 1).sum()), "missing_gt": missing,
              "errors_km": ErrorList(errs), "junk_rows": sum(bad.values()), "junk": bad,
              "junk_examples": shown, "recall_pct": recall, "fixes": fixes}
     return summarize_array(errs, thresholds), extra

@@ -52,6 +52,23 @@ def _csv_header(path: Path) -> list[str]:
         return []
 
 
+def check_csv_output(out: str | os.PathLike[str], columns: list[str], what: str,
+                     inputs: Iterable[str | os.PathLike[str] | None] = ()) -> None:
+    """Before any work: ``out`` may be written as a CSV with ``columns`` (it does not exist, or
+    is such a CSV written before); OutputError (one line, file untouched) when it is a folder,
+    one of ``inputs``, or another file."""
+    p = Path(out)
+    for inp in inputs:
+        if inp is not None and os.path.lexists(p) and os.path.exists(inp) and \
+                os.path.samefile(p, inp):
+            raise OutputError(f"{what} {out} is the input {inp}; choose another file")
+    if p.is_dir():
+        raise OutputError(f"{what} {out} is a folder; give a CSV file name")
+    if os.path.lexists(p) and _csv_header(p) != list(columns):
+        raise OutputError(f"{what} {out} exists and is not a CSV this command wrote; it is "
+                          "left untouched: choose another file")
+
+
 def written_by_us(path: Path, kind: str) -> bool:
     """Whether folder ``path`` is a ``kind`` output this tool wrote (safe to replace)."""
     marker = path / MARKER
