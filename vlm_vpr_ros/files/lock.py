@@ -85,6 +85,7 @@ def _holder_line(what: str) -> str:
 
 _NO_WRITE = (errno.EACCES, errno.EPERM, errno.EROFS)
 _NOFOLLOW = getattr(os, "O_NOFOLLOW", 0)
+_sys_open = os.open  # every open of a lock file (one name: tests simulate permissions on it)
 
 
 class _Flock:
@@ -102,7 +103,7 @@ class _Flock:
 
     def _open(self) -> IO[str]:
         try:
-            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_APPEND | _NOFOLLOW, 0o644)
+            fd = _sys_open(self.path, os.O_RDWR | os.O_CREAT | os.O_APPEND | _NOFOLLOW, 0o644)
             return os.fdopen(fd, "a+", encoding="utf-8")
         except OSError as exc:
             if exc.errno == errno.ELOOP:
@@ -110,7 +111,7 @@ class _Flock:
             if exc.errno not in _NO_WRITE or not self.path.is_file():
                 self._refuse_link()
                 raise
-            fd = os.open(self.path, os.O_RDONLY | _NOFOLLOW)  # flock works read-only too
+            fd = _sys_open(self.path, os.O_RDONLY | _NOFOLLOW)  # flock works read-only too
             return os.fdopen(fd, "r", encoding="utf-8")
 
     def try_lock(self, what: str) -> bool:
@@ -148,7 +149,7 @@ class _Flock:
 
     def holder(self) -> str:
         try:
-            fd = os.open(self.path, os.O_RDONLY | _NOFOLLOW | getattr(os, "O_NONBLOCK", 0))
+            fd = _sys_open(self.path, os.O_RDONLY | _NOFOLLOW | getattr(os, "O_NONBLOCK", 0))
         except OSError:
             return ""
         try:
