@@ -121,14 +121,13 @@ def test_evaluate_streams_large_results(tmp_path):
     spec.loader.exec_module(bench)
     n = 400_000
     res, gt = bench.generate(tmp_path, n)
-    run = ("import resource, sys\nfrom vlm_vpr_ros.cli import main\nrc = main(sys.argv[1:])\n"
-           "sys.stderr.write(f'MAXRSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss}')\n"
-           "sys.exit(rc)")
-    proc = subprocess.run([sys.executable, "-c", run, "evaluate", "--results", str(res),
+    # the child's own high-water mark (VmHWM: getrusage's maxrss would include the RSS of
+    # this forked pytest process before the child's exec)
+    proc = subprocess.run([sys.executable, "-c", bench.CHILD, "evaluate", "--results", str(res),
                            "--ground-truth", str(gt), "--json"], capture_output=True,
                           text=True, timeout=600, env={**os.environ, "PYTHONPATH": str(repo)})
     assert proc.returncode == 0, proc.stderr
-    peak_mb = int(proc.stderr.rsplit("MAXRSS ", 1)[1].split()[0]) / 1024.0
+    peak_mb = bench.peak_mb(proc.stderr)
     s = json.loads(proc.stdout)
     truth = {r["file"]: (float(r["lat"]), float(r["lon"])) for r in csv.DictReader(open(gt))}
     ok = junk = fixes = 0

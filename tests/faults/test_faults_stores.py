@@ -72,8 +72,8 @@ def test_feature_files_checked_against_manifest(cli, map_copy, demo_data, querie
     assert rc == 0
     assert _lf(man, 0, "descriptors") in cli.text and "does not match the manifest" in cli.text
     rows = list(csv.DictReader(out.open()))
-    assert rows and all("unverified" in r["flags"].split(";") or "unverified" in r["flags"]
-                        for r in rows), [r["flags"] for r in rows]
+    assert rows and all("unverified" in r["flags"].split("|") and r["status"] == "no_fix"
+                        for r in rows), [(r["flags"], r["status"]) for r in rows]
     a.write_bytes(raw)
     assert {p: p.read_bytes() for p in pristine} == pristine
     assert _open(m) is not None

@@ -205,8 +205,7 @@ def evaluate_stream(results_csv: Any, ground_truth_csv: Any,
             has_status = has_status or bool(st)
             flagged = c_fl is not None and not FALLBACK_FLAGS.isdisjoint(row[c_fl].split("|"))
             flags.append((st == "fix") | (flagged << 1))
-    g = truth.lookup(np.frombuffer(names, dtype=np.int64),
-                     np.frombuffer(base_rows, dtype=np.int64), np.frombuffer(bases, dtype=np.int64))
+    g = truth.lookup(*(np.frombuffer(a, dtype=np.int64) for a in (names, base_rows, bases)))
     del names, bases, base_rows
     line_of = np.frombuffer(lines, dtype=np.int64)
     keep = np.zeros(len(g), dtype=bool)  # the first row of each file with ground truth
