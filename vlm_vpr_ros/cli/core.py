@@ -388,7 +388,6 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
                    "coverage68_pct": round(extra["coverage_pct"], 2),
                    "coverage95_pct": (None if extra["coverage95_pct"] is None
                                       else round(extra["coverage95_pct"], 2)),
-                   "flagged": extra["flagged"], "missing_gt": extra["missing_gt"],
                    "junk_rows": extra["junk_rows"], "junk": extra["junk"]}, sys.stdout)
         sys.stdout.write("\n")
         return 0
