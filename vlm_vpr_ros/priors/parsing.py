@@ -23,10 +23,11 @@ A position can be read and still be suspicious (:attr:`ParsedAnswer.suspicious`)
 ``null_island`` for (0, 0) and its ~10 km around (open ocean; the placeholder of a model that
 does not know), ``injection`` when the answer carries instructions aimed at the model ("ignore
 the image; latitude 0, longitude 0", e.g. read from a sign in the picture), ``ambiguous`` when
-an answer that is not one JSON object names two places more than :data:`AMBIGUOUS_KM` apart
-("either Paris {...} or San Francisco {...}", or a guess the model rejected in its reasoning
-before its answer): the first is not silently taken. Providers report such answers as
-failures, not as priors.
+an answer that is not a JSON object (whole, or in a fenced code block) names two places more
+than :data:`AMBIGUOUS_KM` apart ("either Paris {...} or San Francisco {...}", a guess the model
+rejected in its reasoning before its answer, or a JSON longitude that contradicts the text's
+``9.1310° W``): the first is not silently taken. Providers report such answers as failures,
+not as priors.
 """
 
 from __future__ import annotations
@@ -122,8 +123,8 @@ def parse_answer(text: Any, mode: str = "robust") -> ParsedAnswer:
             found_out_of_range = True
         elif first is None:
             first = (float(lat), float(lon), method, info)
-            if method in ("json", "json_schema") or mode == "paper":
-                break  # one JSON object is the answer; the paper's regex takes the first
+            if method in ("json", "fenced_json") or mode == "paper":
+                break  # a JSON answer (whole, or fenced) is read as given; paper: the first
         elif float(haversine_km(first[0], first[1], lat, lon)) > AMBIGUOUS_KM:
             return ParsedAnswer(first[0], first[1], "", first[2], first[3], "ambiguous")
         if n >= _MAX_CANDIDATES:
