@@ -50,9 +50,6 @@ def _num(v) -> float | None:
     return x if math.isfinite(x) and x > 0 else None
 
 
-STATUSES = ("", "fix", "no_fix")
-
-
 def results_rows(results_csv, required=("file", "lat", "lon")) -> list[dict[str, str]]:
     """The rows of a results CSV of ``vlm-vpr localize``, checked before they count: a row
     repeated is kept once (warning with the line numbers), a file given twice with other
@@ -61,6 +58,7 @@ def results_rows(results_csv, required=("file", "lat", "lon")) -> list[dict[str,
     and an unknown ``status`` are a
     DataError naming ``file:line`` and the field (one wrong answer must not count 20 times,
     nor a made-up score move ``p_correct``)."""
+    from vlm_vpr_ros.evaluation.results_csv import STATUSES
     from vlm_vpr_ros.files.csvio import parse_latlon, parse_number, read_rows, unique_rows
 
     _, rows = read_rows(results_csv, "results CSV", required)
