@@ -52,6 +52,7 @@ _SHAPED = re.compile(r"\b(?:sk-[A-Za-z0-9_-]{8,}|AIza[0-9A-Za-z_-]{20,}|gh[pousr
 _SECRET_WORDS = ("key", "apikey", "sig", "signature", "token", "secret", "password", "passwd",
                  "pwd", "code", "auth", "credential", "credentials", "sas", "jwt", "session")
 _QUERY = re.compile(r"(?i)([?&;]([A-Za-z0-9_.-]{1,64})=)([^&#\s'\"<>]+)")
+_MASKS = re.compile(r"(?:\*\*\*){2,}")  # adjacent masks read as one
 #: a value named like an environment variable (what api_key_env expects)
 ENV_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 
@@ -140,7 +141,6 @@ def redact(text: object) -> str:
         known = [_patterns[k] for k in sorted(_secrets, key=len, reverse=True)]
     for pattern in known:
         s = pattern.sub(MASK, s)
-    s = _mask_pieces(s)
     s = _URL_USERINFO.sub(rf"\1{MASK}@", s)
     s = _QUERY.sub(lambda m: f"{m.group(1)}{MASK}" if secret_query_name(m.group(2))
                    and m.group(3) != MASK else m.group(0), s)
@@ -148,7 +148,10 @@ def redact(text: object) -> str:
     s = _BEARER.sub(rf"\1{MASK}", s)
     s = _NAMED.sub(lambda m: m.group(0) if m.group(1).lower().endswith("_env")
                    else f"{m.group(1)}{m.group(2)}{MASK}", s)
-    return _SHAPED.sub(MASK, s)
+    s = _SHAPED.sub(MASK, s)
+    # pieces last: a piece shared with another key (the "sk-proj-" of any OpenAI key) must not
+    # cut that key's shape before the rules above have masked it whole
+    return _MASKS.sub(MASK, _mask_pieces(s))
 
 
 def redact_obj(obj: Any) -> Any:
