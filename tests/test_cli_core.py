@@ -72,7 +72,9 @@ def test_build_localize_evaluate(tmp_path, demo_data, queries):
     proc = run("evaluate", "--results", res, "--ground-truth", queries / "queries.csv", "--json")
     summary = json.loads(proc.stdout)
     assert set(summary) == {"n", "accuracy", "median_km", "recall_pct", "fixes",
-                            "coverage68_pct", "coverage95_pct", "integrity"} and summary["n"] == 11
+                            "coverage68_pct", "coverage95_pct", "integrity", "junk_rows",
+                            "junk"}
+    assert summary["n"] == 11 and summary["junk_rows"] == 0 and summary["junk"] == {}
     assert summary["integrity"]["fixes"] == summary["fixes"]["n"]  # tests/test_integrity_report
     gt = {r["file"]: (float(r["lat"]), float(r["lon"]))
           for r in csv.DictReader(open(queries / "queries.csv"))}

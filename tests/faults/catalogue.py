@@ -287,4 +287,66 @@ CATALOGUE: dict[str, tuple[str, str, str]] = {
                                               "an interrupted `--images` run",
                                     "exit 2 naming `--resume`; `--overwrite` writes the results "
                                     "and removes the stale `.partial`"),
+    # -- round 4 (issue 28): stored files -------------------------------------------------------
+    "features_not_the_manifest": ("map", "`lf_rows`/`lf_kpts`/`lf_desc` given another "
+                                         "submap's bytes (same size), garbage in a small "
+                                         "`lf_kpts`, a wrong sha256 for `lf_desc`",
+                                  "refused at open naming the file; `localize` answers "
+                                  "flagged `unverified`, never verified from the wrong "
+                                  "features"),
+    "features_rewritten_while_open": ("map", "a feature file rewritten in place (same size) "
+                                             "while the store is open",
+                                      "refused naming the file until reloaded"),
+    "features_bad_caps": ("map", "`local_features.max_keypoints` -1, a submap missing from "
+                                 "the section", "MapError naming the map and the field; "
+                                                "advises `vlm-vpr build-map`"),
+    "lock_symlink_file": ("writers", "`PARENT/.MAP.lock` or `MAP/.edit.lock` a symbolic link "
+                                     "to a user's file, or dangling",
+                          "exit 2 naming the link; the file untouched, nothing created at "
+                          "the target"),
+    "out_save_matches": ("output", "`localize --save-matches X`: X an existing file, a folder "
+                                   "holding same-named pictures, a folder inside the map",
+                         "exit 2 before any query, nothing written (without --overwrite)"),
+    # -- round 4 (issue 28): VLM answers and secrets ------------------------------------------
+    "answer_cut_or_ambiguous": ("answer", "answer cut at the token limit (`finish_reason: "
+                                          "length`) holding only a guess being weighed; "
+                                          "\"either Paris {…} or San Francisco {…}\"",
+                                "`truncated` / `suspicious_ambiguous`: not a prior (the read "
+                                "position kept for audit)"),
+    "vlm_not_an_api": ("vlm", "200 `text/html` login page; `content: null` with the answer "
+                              "only in `reasoning`; 150 response headers",
+                       "`bad_response` / `reasoning_only` with one line naming the content "
+                       "type or the fault, not `connection_error`"),
+    "vlm_body_cut": ("vlm", "body cut off before its Content-Length",
+                     "retried like a transport error (`connection_error`), the retry's "
+                     "answer used"),
+    "secret_query_and_encodings": ("secret", "`?subscription-key=…` in the base URL; a 400 "
+                                             "body echoing the key base64-encoded, "
+                                             "upper-cased, split in two",
+                                   "masked in logs at every level, stderr, --json and the "
+                                   "answer cache"),
+    "pose_fixed_zone_far": ("node", "fixed `utm_zone` with fixes 85-180 deg of longitude "
+                                    "away; a `local_enu` datum ~7,000 km from the fix",
+                            "no pose, the reason named (ConfigError), never finite "
+                            "nonsense; neighbouring zones still served"),
+    # -- round 4 (issue 28): scoring inputs ----------------------------------------------------
+    "calibrate_junk_rows": ("csv", "`calibrate`: one wrong row repeated 20 times; a file twice "
+                                   "with other values; `inlier_ratio` -3 / nan / 1e999, "
+                                   "`p_correct` 2, latitude 91, status `FIX`",
+                            "a repeat counts once (warning with the lines); the others exit 2 "
+                            "naming file:line and the field, map unchanged"),
+    "evaluate_junk_rows": ("csv", "`evaluate`: latitude 91 / 1e999 / nan, status `FIX` / "
+                                  "`bogus`, `p_correct` 2 / -1, a file repeated; the results "
+                                  "given as their own ground truth",
+                           "junk rows counted and reported by reason (file:line), not "
+                           "scored; same file: exit 2; `flagged` = a fallback flag"),
+    "writers_symlink_names": ("writers", "a symbolic link to a user's file at an output "
+                                         "marker's name or a writer's temporary name",
+                              "replaced, never followed: the user's file untouched"),
+    "evaluate_streams": ("resource", "`evaluate` of 400,000 results rows",
+                         "streamed: < 250 MB peak, numbers equal to an independent count "
+                         "(2,000,000 rows: benchmarks/bench_evaluate.py)"),
+    "out_details_csv": ("output", "`priors score --details X`: X a user's CSV, a folder, the "
+                                  "answers or ground truth themselves",
+                        "exit 2 before any work, untouched; a details CSV of ours replaced"),
 }

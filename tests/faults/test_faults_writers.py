@@ -4,6 +4,7 @@ under an edit; `describe` output safety (staged, never over a user's folder or a
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import threading
 
@@ -382,17 +383,17 @@ def test_ctrl_c_between_the_two_renames_keeps_the_old_output(tmp_path, monkeypat
 def _no_write(monkeypatch, lockfile):
     """This process may read ``lockfile`` but not write or create it (another user's lock
     file, or a parent folder read-only for us: root ignores permission bits, so simulated)."""
-    import builtins
     import errno
+    import os
 
     from vlm_vpr_ros.files import lock
 
-    def guarded(path, mode="r", *a, **k):
-        if str(path) == str(lockfile) and mode != "r":
+    def guarded(path, flags, *a, **k):
+        if str(path) == str(lockfile) and flags & (os.O_WRONLY | os.O_RDWR | os.O_CREAT):
             raise PermissionError(errno.EACCES, "Permission denied", str(path))
-        return builtins.open(path, mode, *a, **k)
+        return os.open(path, flags, *a, **k)
 
-    monkeypatch.setattr(lock, "open", guarded, raising=False)
+    monkeypatch.setattr(lock, "_sys_open", guarded)
 
 
 @pytest.mark.fault("lock_file_not_writable")
@@ -424,7 +425,7 @@ def test_edit_without_the_lock_beside_the_map_excludes_the_others(map_copy, monk
     assert mine.path == map_copy / ".edit.lock"
     from vlm_vpr_ros.files import lock
 
-    monkeypatch.delattr(lock, "open")  # the other user may write the parent
+    monkeypatch.setattr(lock, "_sys_open", os.open)  # the other user may write the parent
     before = {k: v for k, v in sha_tree(map_copy).items() if not k.endswith(".edit.lock")}
     try:
         with pytest.raises(MapError, match="being written by another process"):

@@ -13,7 +13,8 @@ DOC = Path(__file__).resolve().parents[2] / "docs" / "robustness.md"
 
 SUITE = {"test_faults_map.py", "test_faults_outputs.py", "test_faults_vlm.py",
          "test_faults_node.py", "test_faults_writers.py",
-         "test_faults_content.py", "test_faults_inputs.py"}
+         "test_faults_content.py", "test_faults_inputs.py", "test_faults_stores.py",
+         "test_faults_answers.py", "test_faults_scoring.py"}
 
 
 def test_every_case_has_exactly_one_test(request):

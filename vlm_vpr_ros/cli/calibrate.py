@@ -50,16 +50,45 @@ def _num(v) -> float | None:
     return x if math.isfinite(x) and x > 0 else None
 
 
+def results_rows(results_csv, required=("file", "lat", "lon")) -> list[dict[str, str]]:
+    """The rows of a results CSV of ``vlm-vpr localize``, checked before they count: a row
+    repeated is kept once (warning with the line numbers), a file given twice with other
+    values, a latitude/longitude out of range, a non-finite or negative radius or
+    ``inlier_ratio`` (the evidence score, >= 0), a ``p_correct`` outside 0..1, ``nan`` anywhere
+    and an unknown ``status`` are a
+    DataError naming ``file:line`` and the field (one wrong answer must not count 20 times,
+    nor a made-up score move ``p_correct``)."""
+    from vlm_vpr_ros.evaluation.results_csv import STATUSES
+    from vlm_vpr_ros.files.csvio import parse_latlon, parse_number, read_rows, unique_rows
+
+    _, rows = read_rows(results_csv, "results CSV", required)
+    checked = []
+    for line, row in rows:
+        where = f"{results_csv}:{line}"
+        if (row.get("lat") or "").strip() or (row.get("lon") or "").strip():
+            parse_latlon(row.get("lat"), row.get("lon"), where)
+        for field, lo, hi in (("uncertainty_m", 0.0, math.inf), ("radius95_m", 0.0, math.inf),
+                              ("inlier_ratio", 0.0, math.inf), ("p_correct", 0.0, 1.0)):
+            value = (row.get(field) or "").strip()
+            if value and not lo <= parse_number(value, where, field) <= hi:
+                raise DataError(f"{where}: {field} {value} is out of range [{lo:g}, {hi:g}]")
+        if (row.get("status") or "").strip() not in STATUSES:
+            raise DataError(f"{where}: status {row.get('status')!r} is not one of "
+                            f"{', '.join(repr(s) for s in STATUSES[1:])} (or empty)")
+        checked.append((line, row["file"], tuple(sorted((k, v or "") for k, v in row.items()
+                                                        if k is not None))))
+    unique = unique_rows(checked, results_csv, "file")
+    return [dict(items) for items in unique.values()]
+
+
 def calibration_ratios(results_csv, ground_truth_csv) -> dict[str, dict[str, list[float]]]:
     """error / radius per regime ("prior" / "no_prior") and level ("68" / "95")."""
-    from vlm_vpr_ros.files.csvio import read_table
     from vlm_vpr_ros.evaluation.metrics import read_ground_truth
     from vlm_vpr_ros.geodesy import haversine_km
 
     gt = read_ground_truth(ground_truth_csv)
     by_base = {os.path.basename(k): v for k, v in gt.items()}
-    rows = read_table(results_csv, ("file", "lat", "lon", "uncertainty_m", "radius95_m"),
-                      "results CSV")
+    rows = results_rows(results_csv, ("file", "lat", "lon", "uncertainty_m", "radius95_m"))
     out: dict[str, dict[str, list[float]]] = {r: {"68": [], "95": []}
                                               for r in ("prior", "no_prior")}
     for row in rows:
@@ -154,12 +183,11 @@ def verification_negatives(results_csv, ground_truth_csv) -> tuple[list[float], 
     verified rows with ground truth; None with fewer than MIN_ROWS of them. Prints the fix
     rate and precision of these rows."""
     from vlm_vpr_ros.evaluation.metrics import read_ground_truth
-    from vlm_vpr_ros.files.csvio import read_table
     from vlm_vpr_ros.geodesy import haversine_km
 
     gt = read_ground_truth(ground_truth_csv)
     by_base = {os.path.basename(k): v for k, v in gt.items()}
-    rows = read_table(results_csv, ("file", "lat", "lon"), "results CSV")
+    rows = results_rows(results_csv)
     wrong, n, fixes, fix_ok = [], 0, 0, 0
     for row in rows:
         g = gt.get(row["file"]) or by_base.get(os.path.basename(row["file"]))

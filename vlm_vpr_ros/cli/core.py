@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import sys
 from pathlib import Path
 
@@ -261,6 +262,8 @@ def cmd_localize(args: argparse.Namespace) -> int:
                         "run writes its results at the end: run it again with --overwrite")
     files = read_file_column(args.queries)
     done = _localize_start(out, args.resume, args.overwrite)
+    finished = {r["file"] for r in done}
+    _check_save_matches(args, [f for f in files if f not in finished])
     if args.query_descriptors:
         return _localize_descriptors(args, files)
     if not args.images:
@@ -275,7 +278,6 @@ def cmd_localize(args: argparse.Namespace) -> int:
                                      status=status_policy(args))
     pipe.map.open_submaps()  # a damaged map: exit 2 before the first query
     on_result = _match_writer(args, pipe)
-    finished = {r["file"] for r in done}
     todo = [f for f in files if f not in finished]
     provider = make_prior_provider(args)
     from tqdm import tqdm
@@ -305,6 +307,28 @@ def cmd_localize(args: argparse.Namespace) -> int:
     resumed = f", {len(stream.rows) - len(todo)} kept from the earlier run" if done else ""
     print(f"{len(stream.rows)} queries localized -> {args.out} ({flagged} with flags{resumed})")
     return 0
+
+
+def _check_save_matches(args: argparse.Namespace, todo: list[str]) -> None:
+    """``--save-matches DIR`` checked before any work: a folder (or a new name), not inside the
+    map, and holding none of the pictures this run would write unless ``--overwrite``."""
+    if not args.save_matches:
+        return
+    from vlm_vpr_ros.errors import OutputError
+    from vlm_vpr_ros.evaluation.matches import sheet_names
+    from vlm_vpr_ros.files.outputs import check_not_inside
+
+    d = Path(args.save_matches)
+    if (d.exists() or d.is_symlink()) and not d.is_dir():
+        raise OutputError(f"--save-matches {d} exists and is not a folder; it is left "
+                          "untouched: choose a folder")
+    check_not_inside(d, [args.map], what="--save-matches")
+    if d.is_dir() and not args.overwrite:
+        clash = [n for n in sheet_names(todo).values() if os.path.lexists(d / n)]
+        if clash:
+            raise OutputError(f"--save-matches {d} already holds {len(clash)} of the pictures "
+                              f"this run writes (e.g. {clash[0]}); pass --overwrite to replace "
+                              "them or choose another folder")
 
 
 def _match_writer(args: argparse.Namespace, pipe):
@@ -370,7 +394,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
                    "coverage68_pct": round(extra["coverage_pct"], 2),
                    "coverage95_pct": (None if extra["coverage95_pct"] is None
                                       else round(extra["coverage95_pct"], 2)),
-                   "integrity": integ}, sys.stdout)
+                   "integrity": integ, "junk_rows": extra["junk_rows"], "junk": extra["junk"]},
+                  sys.stdout)
         sys.stdout.write("\n")
         return 0
     print(format_table({"results": summary}, title=f"accuracy of {args.results}"))
@@ -378,8 +403,14 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     print(f"coverage: the 68 % radius (uncertainty_m) holds the truth in "
           f"{extra['coverage_pct']:.1f}% of rows, the 95 % radius (radius95_m) in "
           + ("- (no radius95_m column)" if c95 is None else f"{c95:.1f}%")
-          + f"; {extra['flagged']} flagged rows; {extra['missing_gt']} rows without ground "
-          "truth")
+          + f"; {extra['flagged']} flagged rows (a fallback flag); {extra['missing_gt']} rows "
+          "without ground truth")
+    if extra["junk_rows"]:
+        from vlm_vpr_ros.evaluation.results_csv import JUNK
+
+        print(f"junk rows, counted but not scored: {extra['junk_rows']} ("
+              + ", ".join(f"{JUNK[k]}: {v}" for k, v in extra["junk"].items())
+              + f"); e.g. {extra['junk_examples'][0]}")
     rec, fx = extra["recall_pct"], extra["fixes"]
     print("recall within 25 m: " + ("- (no top_positions column)" if rec is None else
                                     "  ".join(f"R{k} {v:.1f}%" for k, v in rec.items())))

@@ -86,12 +86,21 @@ def score_answers(answers: dict[str, str], truth: dict[str, tuple[float, float]]
              "reasons": dict(sorted(reasons.items()))}, rows)
 
 
+DETAILS_COLUMNS = ["answers", "parser", "file", "lat", "lon", "gt_lat", "gt_lon", "error_km",
+                   "reason", "method"]
+
+
 def cmd_score(args: argparse.Namespace) -> int:
     from vlm_vpr_ros.priors.vlm import read_answers_csv
 
     modes = list(PARSER_MODES) if args.parser == "all" else [args.parser]
     if args.json and (len(modes) > 1 or len(args.answers) > 1):
         raise ConfigError("--json prints one object: give one --answers CSV and one --parser")
+    if args.details:  # checked before any work: never a user's file
+        from vlm_vpr_ros.files.outputs import check_csv_output
+
+        check_csv_output(args.details, DETAILS_COLUMNS, "--details",
+                         [args.ground_truth, *args.answers])
     truth = read_ground_truth(args.ground_truth)
     results, details = [], []
     for path in args.answers:
@@ -104,8 +113,7 @@ def cmd_score(args: argparse.Namespace) -> int:
             results.append((f"{Path(path).stem} [{mode}]", summary))
             details += [{"answers": Path(path).stem, "parser": mode, **r} for r in rows]
     if args.details:
-        write_csv_atomic(args.details, ["answers", "parser", "file", "lat", "lon", "gt_lat",
-                                        "gt_lon", "error_km", "reason", "method"], details)
+        write_csv_atomic(args.details, DETAILS_COLUMNS, details)
     if args.json:
         s = results[0][1]
         print(json.dumps({k: s[k] for k in ("images", "readable", "accuracy", "median_km")}))

@@ -72,6 +72,31 @@ def draw_pair(query: np.ndarray, qf: LocalFeatures, ref: np.ndarray | None,
     return np.concatenate([band, canvas], axis=0)
 
 
+def sheet_name(file: str) -> str:
+    """The picture name of query ``file`` (safe characters, ``.jpg``)."""
+    return (re.sub(r"[^A-Za-z0-9._-]+", "_", file).strip("_")[-150:] or "query") + ".jpg"
+
+
+def unique_name(name: str, taken: set[str]) -> str:
+    """``name``, or ``name-2.jpg``, ``-3`` ...: two queries never share one picture."""
+    k, out = 1, name
+    while out in taken:
+        k += 1
+        out = f"{name[:-4]}-{k}.jpg"
+    return out
+
+
+def sheet_names(files: list[str]) -> dict[str, str]:
+    """The picture name of each query of a run (as :class:`MatchWriter` assigns them)."""
+    names: dict[str, str] = {}
+    taken: set[str] = set()
+    for f in files:
+        if f not in names:
+            names[f] = unique_name(sheet_name(f), taken)
+            taken.add(names[f])
+    return names
+
+
 class MatchWriter:
     """The ``on_result`` callback of :func:`vlm_vpr_ros.localization.batch.localize_files`."""
 
@@ -84,6 +109,14 @@ class MatchWriter:
         self.pipeline, self.gt, self.only_wrong = pipeline, dict(ground_truth or {}), only_wrong
         self.rows, self.radius_m = rows, place_radius_m
         self.written = 0
+        self._names: dict[str, str] = {}  # query file -> picture name (unique in this run)
+        self._taken: set[str] = set()
+
+    def _name(self, file: str) -> str:
+        if file not in self._names:
+            self._names[file] = unique_name(sheet_name(file), self._taken)
+            self._taken.add(self._names[file])
+        return self._names[file]
 
     def _truth(self, file: str) -> tuple[float, float] | None:
         import os
@@ -123,8 +156,8 @@ class MatchWriter:
         band = np.full((30, width, 3), 255, np.uint8)
         cv2.putText(band, head[:170], (6, 21), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 0), 1,
                     cv2.LINE_AA)
-        name = re.sub(r"[^A-Za-z0-9._-]+", "_", file).strip("_")[-150:] or "query"
-        atomic_write_bytes(self.out / f"{name}.jpg",
+        name = self._name(file)
+        atomic_write_bytes(self.out / name,
                            encode_jpeg(np.concatenate([band, sheet], axis=0), 85))
         self.written += 1
 

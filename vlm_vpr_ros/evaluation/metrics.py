@@ -6,7 +6,10 @@ from __future__ import annotations
 import math
 from typing import Iterable, Sequence
 
-from vlm_vpr_ros.geodesy import THRESHOLDS_KM, accuracy_table, haversine_km, median_km
+import numpy as np
+
+from vlm_vpr_ros.geodesy import (MAX_DISTANCE_KM, THRESHOLDS_KM, accuracy_table, haversine_km,
+                                 median_km)
 
 
 def errors_km(est: Sequence[tuple[float, float] | None],
@@ -32,6 +35,19 @@ def summarize(errs: Iterable[float | None],
         "accuracy": {k: round(v, 2) for k, v in accuracy_table(errs, thresholds).items()},
         "median_km": None if med is None else round(med, 3),
     }
+
+
+def summarize_array(errs: np.ndarray, thresholds: Sequence[float] = THRESHOLDS_KM) -> dict:
+    """:func:`summarize` of errors as one float array (NaN: no estimate), without a Python
+    object per row (millions of rows: ``evaluate``); the same numbers."""
+    errs = np.asarray(errs, dtype=np.float64)
+    n = len(errs)
+    finite = np.where(np.isfinite(errs), errs, np.inf)
+    acc = {f"{t:g}km": round(100.0 * int(np.sum(finite <= t)) / n if n else 0.0, 2)
+           for t in thresholds}
+    med = (float(np.median(np.where(np.isfinite(errs), errs, MAX_DISTANCE_KM))) if n
+           else None)
+    return {"n": n, "accuracy": acc, "median_km": None if med is None else round(med, 3)}
 
 
 def threshold_label(key: str) -> str:
@@ -118,49 +134,6 @@ def _float(v) -> float | None:
     return x if x is not None and math.isfinite(x) else None
 
 
-def coverage_pct(errs: Sequence[float | None], radii_m: Sequence[float | None]) -> float:
-    """Percent of rows whose error (km) is within their radius (m); a row without an estimate
-    or radius counts as not covered."""
-    errs = list(errs)
-    hits = sum(1 for e, r in zip(errs, radii_m) if e is not None and r is not None
-               and e * 1000.0 <= r)
-    return 100.0 * hits / len(errs) if errs else 0.0
-
-
-def evaluate_results_csv(results_csv, ground_truth_csv,
-                         thresholds: Sequence[float] = THRESHOLDS_KM) -> tuple[dict, dict]:
-    """Summary (JSON shape of ``vlm-vpr evaluate``) of a results CSV, plus extra statistics
-    (``errors_km``: the per-row errors, None for a row without an estimate)."""
-    import os
-
-    from vlm_vpr_ros.files.csvio import read_table
-
-    gt = read_ground_truth(ground_truth_csv)
-    gt_base = {os.path.basename(k): v for k, v in gt.items()}
-    rows = read_table(results_csv, ("file", "lat", "lon"), "results CSV")
-    est, truth, sigma, sigma95, flagged, missing = [], [], [], [], 0, 0
-    kept = []
-    for row in rows:
-        g = gt.get(row.get("file", "")) or gt_base.get(os.path.basename(row.get("file", "")))
-        if g is None:
-            missing += 1
-            continue
-        lat, lon = _float(row.get("lat")), _float(row.get("lon"))
-        est.append(None if lat is None or lon is None else (lat, lon))
-        truth.append(g)
-        sigma.append(_float(row.get("uncertainty_m")))
-        sigma95.append(_float(row.get("radius95_m")))
-        flagged += bool(row.get("flags"))
-        kept.append(row)
-    errs = errors_km(est, truth)
-    extra = {"coverage_pct": coverage_pct(errs, sigma),
-             "coverage95_pct": (coverage_pct(errs, sigma95)
-                                if any(s is not None for s in sigma95) else None),
-             "flagged": flagged, "missing_gt": missing, "errors_km": errs,
-             **verification_metrics(kept, truth, errs)}
-    return summarize(errs, thresholds), extra
-
-
 RECALL_AT = (1, 5, 10, 20)
 
 
@@ -175,24 +148,13 @@ def _top_positions(text: str | None) -> list[tuple[float, float]]:
     return out
 
 
-def verification_metrics(rows: Sequence[dict], truth: Sequence[tuple[float, float]],
-                         errs: Sequence[float | None], radius_m: float = 25.0) -> dict:
-    """What users of VPR tools read (docs/verification.md): recall@1/5/10/20 within
-    ``radius_m`` over the listed candidates (``top_positions``; None without the column),
-    the share of ``status == fix`` answers and their precision within 25 m and 50 m."""
-    n = len(rows)
-    recall = None
-    if n and any(r.get("top_positions") for r in rows):
-        hits = dict.fromkeys(RECALL_AT, 0)
-        for r, g in zip(rows, truth):
-            d = [float(haversine_km(g[0], g[1], la, lo)) * 1000.0
-                 for la, lo in _top_positions(r.get("top_positions"))]
-            for k in RECALL_AT:
-                hits[k] += any(x <= radius_m for x in d[:k])
-        recall = {f"@{k}": round(100.0 * v / n, 2) for k, v in hits.items()}
-    has_status = any(r.get("status") for r in rows)
-    fixes = fix_metrics([r.get("status", "") for r in rows], errs) if has_status else None
-    return {"recall_pct": recall, "fixes": fixes}
+def evaluate_results_csv(results_csv, ground_truth_csv,
+                         thresholds: Sequence[float] = THRESHOLDS_KM) -> tuple[dict, dict]:
+    """Summary (JSON shape of ``vlm-vpr evaluate``) of a results CSV, plus extra statistics;
+    streamed, junk rows counted and reported: :mod:`vlm_vpr_ros.evaluation.results_csv`."""
+    from vlm_vpr_ros.evaluation.results_csv import evaluate_stream
+
+    return evaluate_stream(results_csv, ground_truth_csv, thresholds)
 
 
 def fix_metrics(statuses: Sequence[str], errs: Sequence[float | None]) -> dict:

@@ -90,6 +90,8 @@ def atomic_path(path: str | os.PathLike[str], suffix: str = "") -> Iterator[Path
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}.{next(_counter)}{suffix}")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
+        if os.path.lexists(tmp):  # never write through a link (or file) left at our name
+            os.unlink(tmp)
         yield tmp
         commit_temp(tmp, path)
     except OutputError:

@@ -8,13 +8,14 @@ anywhere in the file (not only in its first 64 KiB) is "malformed CSV" naming it
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import logging
 import math
 import os
 import re
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Iterable, Iterator
 
 from vlm_vpr_ros.errors import DataError
 from vlm_vpr_ros.files.atomic import atomic_path
@@ -53,6 +54,52 @@ def read_rows(path: str | os.PathLike[str], what: str = "CSV",
         raise DataError(f"cannot read {what} {path}: {exc.strerror or exc}") from None
 
 
+@contextlib.contextmanager
+def stream_rows(path: str | os.PathLike[str], what: str = "CSV", required: Iterable[str] = ()
+                ) -> Iterator[tuple[list[str], Iterator[tuple[int, list[str]]]]]:
+    """``with stream_rows(path) as (columns, rows):`` the rows as ``(line, [values])`` read one
+    at a time (constant memory: for files of millions of rows), with the checks of
+    :func:`read_rows` (header, required and repeated columns, NUL bytes, CSV syntax: a
+    DataError naming the file and line)."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"{what} not found: {path}")
+    try:
+        line = _nul_line(path)  # one fast pass (C find): the csv module accepts NUL bytes
+        fh = path.open(newline="", encoding="utf-8-sig")
+    except OSError as exc:
+        raise DataError(f"cannot read {what} {path}: {exc.strerror or exc}") from None
+    if line is not None:
+        fh.close()
+        raise DataError(f"{path}:{line}: malformed CSV: a NUL byte (a binary file or a "
+                        "corrupt line, not a CSV)")
+    with fh:
+        reader = csv.reader(fh)
+
+        def fail(exc: Exception) -> DataError:
+            if isinstance(exc, OSError):
+                return DataError(f"cannot read {what} {path}: {exc.strerror or exc}")
+            return DataError(f"{path}:{reader.line_num}: malformed CSV: {exc}")
+
+        try:
+            cols = [c.strip() for c in next(reader, [])]
+        except (csv.Error, UnicodeDecodeError, OSError) as exc:
+            raise fail(exc) from None
+        _check_unique_columns(path, cols)
+        missing = set(required) - set(cols)
+        if missing:
+            raise DataError(f"{path}: missing column(s) {sorted(missing)}; has {cols}")
+
+        def rows() -> Iterator[tuple[int, list[str]]]:
+            try:
+                for row in reader:
+                    if row:
+                        yield reader.line_num, row
+            except (csv.Error, UnicodeDecodeError, OSError) as exc:
+                raise fail(exc) from None
+        yield cols, rows()
+
+
 def _nul_line(path: Path) -> int | None:
     """Line number of the first NUL byte (None when there is none); reads 1 MiB at a time."""
     line = 1
@@ -81,7 +128,8 @@ def read_table(path: str | os.PathLike[str], required: Iterable[str],
 
 
 #: a plain decimal number: digits, one optional point, an optional exponent (ASCII only)
-_NUMBER = re.compile(r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?", re.ASCII)
+#: a plain ASCII decimal number (what :func:`strict_float` accepts)
+NUMBER = re.compile(r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?", re.ASCII)
 
 
 def strict_float(value: object) -> float | None:
@@ -89,7 +137,7 @@ def strict_float(value: object) -> float | None:
     else None: no ``_`` separators, no non-ASCII digits, no ``nan``/``inf`` words."""
     if isinstance(value, (int, float)) and not isinstance(value, bool):
         return float(value)
-    if isinstance(value, str) and _NUMBER.fullmatch(value.strip()):
+    if isinstance(value, str) and NUMBER.fullmatch(value.strip()):
         return float(value)
     return None
 

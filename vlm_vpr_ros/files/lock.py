@@ -17,6 +17,15 @@ the holder dies (Ctrl-C, ``kill -9``), so a crash never leaves a map locked.
 A lock file that exists but is not writable for this user (another user's writer holds it) is
 opened read-only: ``flock`` works on a read-only descriptor, so users share one lock.
 
+A lock file is never reached through a symbolic link: every open is ``O_NOFOLLOW`` (a link at
+the lock's name, to a user's file or dangling, is refused with one line naming it, so the
+holder line is never written into another file and no file is created at the link's target),
+the holder line shown to a refused writer is read the same way, and the holder deletes the
+name only while it still is the very file it locked (``lstat``: a link never matches).
+The core is ``flock`` plus these few checks; the ``filelock`` library (installed with ray) was
+weighed: its Unix lock keeps the file in place after release and would need the same guards
+around it for symbolic links and the holder line, so it would not make this smaller.
+
 In-place edits (``inside_ok``) also lock ``NAME/.edit.lock`` inside the folder, after the lock
 beside it; a build's swap locks it too (:func:`inside_lock`). A user who cannot create the lock
 beside the folder (its parent is read-only for them, and no lock file is there) locks only the
@@ -32,6 +41,7 @@ import errno
 import fcntl
 import logging
 import os
+import stat
 import time
 from pathlib import Path
 from typing import IO, Iterator
@@ -74,6 +84,8 @@ def _holder_line(what: str) -> str:
 
 
 _NO_WRITE = (errno.EACCES, errno.EPERM, errno.EROFS)
+_NOFOLLOW = getattr(os, "O_NOFOLLOW", 0)
+_sys_open = os.open  # every open of a lock file (one name: tests simulate permissions on it)
 
 
 class _Flock:
@@ -84,13 +96,23 @@ class _Flock:
         self.path = path
         self.fh: IO[str] | None = None
 
+    def _refuse_link(self) -> None:
+        if os.path.islink(self.path):
+            raise OutputError(f"lock file {self.path} is a symbolic link (not made by vlm-vpr; "
+                              "it is never followed): remove it and try again")
+
     def _open(self) -> IO[str]:
         try:
-            return open(self.path, "a+", encoding="utf-8")
+            fd = _sys_open(self.path, os.O_RDWR | os.O_CREAT | os.O_APPEND | _NOFOLLOW, 0o644)
+            return os.fdopen(fd, "a+", encoding="utf-8")
         except OSError as exc:
+            if exc.errno == errno.ELOOP:
+                self._refuse_link()
             if exc.errno not in _NO_WRITE or not self.path.is_file():
+                self._refuse_link()
                 raise
-            return open(self.path, "r", encoding="utf-8")  # flock works read-only too
+            fd = _sys_open(self.path, os.O_RDONLY | _NOFOLLOW)  # flock works read-only too
+            return os.fdopen(fd, "r", encoding="utf-8")
 
     def try_lock(self, what: str) -> bool:
         """One attempt (OSError when the file cannot be opened at all)."""
@@ -119,7 +141,7 @@ class _Flock:
 
     def _linked(self, fh: IO[str]) -> bool:
         try:
-            st = os.stat(self.path)
+            st = os.lstat(self.path)  # a symbolic link put at the name never matches
         except FileNotFoundError:
             return False
         mine = os.fstat(fh.fileno())
@@ -127,9 +149,17 @@ class _Flock:
 
     def holder(self) -> str:
         try:
-            return self.path.read_text(encoding="utf-8", errors="replace").strip()[:200]
+            fd = _sys_open(self.path, os.O_RDONLY | _NOFOLLOW | getattr(os, "O_NONBLOCK", 0))
         except OSError:
             return ""
+        try:
+            if not stat.S_ISREG(os.fstat(fd).st_mode):
+                return ""
+            return os.read(fd, 400).decode("utf-8", "replace").strip()[:200]
+        except OSError:
+            return ""
+        finally:
+            os.close(fd)
 
     def release(self) -> None:
         if self.fh is not None:
@@ -169,6 +199,8 @@ class WriterLock:
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)  # a new output's parent
             outer._open().close()
+        except OutputError:
+            raise
         except OSError as exc:
             if not (self.inside_ok and exc.errno in _NO_WRITE and self.target.is_dir()
                     and not os.path.lexists(self.path)):
@@ -213,6 +245,8 @@ class WriterLock:
     def _try(self, part: _Flock, k: int) -> bool:
         try:
             ok = part.try_lock(self.what)
+        except OutputError:
+            raise
         except OSError as exc:
             if (k > 0 or self.inside_only) and exc.errno in _NO_WRITE:
                 return True  # the folder is read-only for us: no edit of ours to exclude

@@ -35,7 +35,7 @@ from typing import Callable, Iterable
 
 from vlm_vpr_ros import __version__
 from vlm_vpr_ros.errors import OutputError
-from vlm_vpr_ros.files.atomic import describe_os_error
+from vlm_vpr_ros.files.atomic import atomic_write_text, describe_os_error
 from vlm_vpr_ros.files.lock import WriterLock, inside_lock
 
 log = logging.getLogger(__name__)
@@ -51,6 +51,23 @@ def _csv_header(path: Path) -> list[str]:
             return next(csv.reader(fh), [])
     except (OSError, UnicodeDecodeError, csv.Error):
         return []
+
+
+def check_csv_output(out: str | os.PathLike[str], columns: list[str], what: str,
+                     inputs: Iterable[str | os.PathLike[str] | None] = ()) -> None:
+    """Before any work: ``out`` may be written as a CSV with ``columns`` (it does not exist, or
+    is such a CSV written before); OutputError (one line, file untouched) when it is a folder,
+    one of ``inputs``, or another file."""
+    p = Path(out)
+    for inp in inputs:
+        if inp is not None and os.path.lexists(p) and os.path.exists(inp) and \
+                os.path.samefile(p, inp):
+            raise OutputError(f"{what} {out} is the input {inp}; choose another file")
+    if p.is_dir():
+        raise OutputError(f"{what} {out} is a folder; give a CSV file name")
+    if os.path.lexists(p) and _csv_header(p) != list(columns):
+        raise OutputError(f"{what} {out} exists and is not a CSV this command wrote; it is "
+                          "left untouched: choose another file")
 
 
 def written_by_us(path: Path, kind: str) -> bool:
@@ -89,8 +106,10 @@ def _shards_meta(path: Path) -> bool:
 
 
 def write_marker(folder: Path, kind: str) -> None:
-    (folder / MARKER).write_text(json.dumps({"kind": kind, "tool": "vlm_vpr_ros",
-                                             "version": __version__}) + "\n", encoding="utf-8")
+    # through a new file moved into place: a symbolic link at the name is replaced, never
+    # followed (the folder may be a resumed one that was not created by this process)
+    atomic_write_text(folder / MARKER, json.dumps({"kind": kind, "tool": "vlm_vpr_ros",
+                                                   "version": __version__}) + "\n")
 
 
 _WHAT = {"map": "a map (no vlm_vpr_ros manifest.json)",

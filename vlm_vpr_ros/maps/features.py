@@ -19,10 +19,15 @@ precomputed descriptors store none and verify from the reference images when a f
 given, or answer unverified (docs/verification.md, "Storage").
 
 Reading: :class:`FeatureStore` checks the section against the manifest at open (every submap
-present, counts and sizes right, the feature the verifier expects) and raises one
-:class:`MapError` naming what is wrong; files are memory-mapped per submap on first use, and
-their sizes are compared with the manifest before every read (a file truncated under a running
-node is a MapError, not a SIGBUS).
+present, counts and sizes right, the keypoint caps, the feature the verifier expects) and the
+content of every feature file by the map's cheap content check
+(:func:`~vlm_vpr_ros.maps.format.check_content`: files up to 256 KiB by their whole sha256,
+larger ones by sampled pages), so files swapped between submaps, a garbage small file or a
+manifest sha256 that does not match are refused at open, and raises one :class:`MapError`
+naming what is wrong; files are memory-mapped per submap on first use, and their sizes are
+compared with the manifest before every read (a file truncated under a running node is a
+MapError, not a SIGBUS); a file written since its check (new modification time) is checked
+again and the submap's features refused when it no longer matches.
 """
 
 from __future__ import annotations
@@ -37,7 +42,8 @@ import numpy as np
 
 from vlm_vpr_ros.errors import MapError
 from vlm_vpr_ros.files.atomic import atomic_write_json
-from vlm_vpr_ros.maps.format import MANIFEST, file_table
+from vlm_vpr_ros.maps.format import (MANIFEST, check_content, content_error, content_matches,
+                                     file_table)
 from vlm_vpr_ros.maps.store import _load_array
 from vlm_vpr_ros.types import LocalFeatures
 
@@ -58,6 +64,8 @@ def _open_npy(path: Path, dtype: np.dtype, shape: tuple[int, ...]) -> np.ndarray
     from numpy.lib.format import open_memmap
 
     path.parent.mkdir(parents=True, exist_ok=True)
+    if os.path.lexists(path):  # a temporary name: never written through a link left there
+        os.unlink(path)
     return open_memmap(path, mode="w+", dtype=dtype, shape=shape)
 
 
@@ -178,11 +186,28 @@ class _SubmapFeatures:
         self.count, self.total = int(entry["count"]), int(entry["n_keypoints"])
         self._arrays: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._inodes: dict[str, tuple[int, int]] = {}
+        #: (dev, ino, mtime_ns, ctime_ns) of each file when its content was last checked
+        self._seen: dict[str, tuple[int, int, int, int]] = {}
+        self._metas: dict[str, Mapping[str, Any]] = {}
+        self._refused = ""
         self._lock = threading.Lock()
+
+    def note_checked(self, metas: Mapping[str, Mapping[str, Any]]) -> None:
+        """Record the files' identity and times (their content is checked next)."""
+        self._metas = {rel: metas[rel] for rel in self.files.values()}
+        for rel in self.files.values():
+            try:
+                st = os.stat(self.root / rel)
+            except OSError:
+                continue
+            self._seen[rel] = (st.st_dev, st.st_ino, st.st_mtime_ns, st.st_ctime_ns)
 
     def check(self) -> None:
         """MapError when a file is missing or not the size the manifest says (before any read
-        of a mapped page: a truncated mapped file would crash the process with SIGBUS)."""
+        of a mapped page: a truncated mapped file would crash the process with SIGBUS), or was
+        written since its content was checked and no longer matches the manifest."""
+        if self._refused:
+            raise MapError(self._refused)
         for rel, size in self.sizes.items():
             try:
                 st = os.stat(self.root / rel)
@@ -195,6 +220,17 @@ class _SubmapFeatures:
             if same and st.st_size != size:
                 raise MapError(f"{self.root}: {rel} has {st.st_size} bytes, manifest says {size}"
                                " (truncated or modified); rebuild or reload the map")
+            now = (st.st_dev, st.st_ino, st.st_mtime_ns, st.st_ctime_ns)
+            if same and rel in self._metas and self._seen.get(rel, now) != now:
+                try:
+                    ok = content_matches(self.root / rel, self._metas[rel])
+                except OSError:
+                    ok = False
+                if ok is False:
+                    self._refused = str(content_error(self.root, rel, " since it was checked"))
+                    log.error("%s", self._refused)
+                    raise MapError(self._refused)
+                self._seen[rel] = now
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         if self._arrays is None:
@@ -278,17 +314,23 @@ class FeatureStore:
         try:
             feat = sec["feature"]
             dtype, dim = np.dtype(feat["dtype"]), int(feat["descriptor_dim"])
-            int(sec["max_keypoints"]), int(sec["query_max_keypoints"])
             entries = dict(sec["submaps"])
         except (KeyError, TypeError, ValueError) as exc:
             raise MapError(f"{where}: malformed ({exc})") from None
+        for key in ("max_keypoints", "query_max_keypoints"):
+            v = sec.get(key)
+            if isinstance(v, bool) or not isinstance(v, int) or not 8 <= v <= 100_000:
+                raise MapError(f"{root}: manifest field 'local_features.{key}' is {v!r}, "
+                               "expected an integer in 8..100000")
         files = manifest.get("files", {})
         subs: dict[str, _SubmapFeatures] = {}
         for s in manifest["submaps"]:
             e = entries.get(s["id"])
             if not isinstance(e, dict) or set(e.get("files", {})) != set(ROLES):
                 raise MapError(f"{where}: submap {s['id']} has no feature files; rebuild the "
-                               "map's local features (vlm-vpr map features)")
+                               "map with 'vlm-vpr build-map ... --overwrite' (it stores the "
+                               "local features), or verify from the reference images "
+                               "(--reference-images DIR)")
             if int(e.get("count", -1)) != int(s["count"]):
                 raise MapError(f"{where}: submap {s['id']} has features for "
                                f"{e.get('count')} references, the submap holds {s['count']}")
@@ -298,8 +340,14 @@ class FeatureStore:
                     raise MapError(f"{root}: {rel} is not listed in the manifest")
                 if ".." in Path(rel).parts or Path(rel).is_absolute():
                     raise MapError(f"{root}: file {rel!r} is outside the map folder")
-            subs[s["id"]] = sub = _SubmapFeatures(root, e, {r: files[r]["bytes"]
-                                                            for r in e["files"].values()},
-                                                  dtype, dim)
-            sub.arrays()  # sizes, shapes and dtypes now: one clear error at open
+            subs[s["id"]] = _SubmapFeatures(root, e, {r: files[r]["bytes"]
+                                                      for r in e["files"].values()}, dtype, dim)
+        rels = [rel for sub in subs.values() for rel in sub.files.values()]
+        for sub in subs.values():  # before the check: a change made during it is seen later
+            sub.note_checked(files)
+        for sub in subs.values():
+            sub.check()  # sizes first: a clear "truncated" before the content check
+        check_content(root, manifest, rels)  # the same check as every other map file
+        for sub in subs.values():
+            sub.arrays()  # shapes and dtypes now: one clear error at open
         return cls(root, sec, subs)

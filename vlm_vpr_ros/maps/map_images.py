@@ -12,7 +12,7 @@ from typing import Any, Mapping, Sequence
 
 from vlm_vpr_ros.errors import DataError, MapError
 from vlm_vpr_ros.files.atomic import atomic_path, atomic_write_json, file_sha256
-from vlm_vpr_ros.maps.format import MANIFEST, bad_ref_id
+from vlm_vpr_ros.maps.format import MANIFEST, bad_ref_id, checked_file
 from vlm_vpr_ros.maps.reference_map import ReferenceMap
 from vlm_vpr_ros.maps.transaction import Transaction, edit_lock
 
@@ -38,7 +38,10 @@ def image_index(map_dir: Path, manifest: Mapping[str, Any]) -> dict[str, dict]:
     entry = manifest.get("images")
     if not entry:
         return {}
-    p = map_dir / entry["index"]
+    if entry["index"] in manifest.get("files", {}):  # checked like every file the map lists
+        p = checked_file(Path(map_dir), manifest, entry["index"], True)
+    else:
+        p = map_dir / entry["index"]
     try:
         return dict(json.loads(p.read_text(encoding="utf-8")))
     except (OSError, ValueError, TypeError) as exc:

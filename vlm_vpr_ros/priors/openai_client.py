@@ -67,6 +67,8 @@ class ChatReply:
     #: the body of an HTTP error answer (read by the caller to explain a 400; never logged
     #: unredacted, never printed)
     error_body: bytes | None = field(default=None, repr=False)
+    #: one line saying what was wrong with an answer that is not a completion (redacted)
+    detail: str | None = None
 
     @property
     def ok(self) -> bool:
@@ -282,7 +284,10 @@ class ChatClient:
                 break
             status = resp.status
             retry_after = parse_retry_after(resp.getheader("Retry-After"))
+            content_type = resp.getheader("Content-Type") or ""
+            declared = resp.length  # Content-Length (None: chunked or until close)
             payload = resp.read(MAX_RESPONSE_BYTES + 1)
+            missing = resp.length if declared is not None else None
             reusable = resp.isclosed() and not resp.will_close
         except (OSError, http.client.HTTPException) as exc:
             return self._failure(exc, handle, fired), None
@@ -298,6 +303,11 @@ class ChatClient:
             return ChatReply(None, "cancelled"), None
         if fired.is_set():
             return ChatReply(None, "timeout"), None
+        if missing and len(payload) <= MAX_RESPONSE_BYTES:  # closed before Content-Length
+            detail = (f"{self.endpoint}: the answer was cut off after {len(payload)} of "
+                      f"{declared} bytes (connection closed)")
+            log.info("%s", detail)
+            return ChatReply(None, "connection_error", status, detail=detail), None
         if status != 200:
             if status in (401, 403):  # bodies may echo a masked key: do not log them
                 log.error("%s: HTTP %d (check the API key / permissions; sent in the %s "
@@ -308,7 +318,7 @@ class ChatClient:
             else:
                 log.debug("%s: HTTP %d: %s", self.endpoint, status, redact(payload[:300]))
             return ChatReply(None, f"http_{status}", status, error_body=payload), retry_after
-        return _read_completion(payload), None
+        return _read_completion(payload, content_type, self.endpoint), None
 
     def _failure(self, exc: BaseException, handle: CallHandle, fired: threading.Event
                  ) -> ChatReply:
@@ -330,6 +340,12 @@ class ChatClient:
                       if plain else "")
             return ChatReply(None, "tls_error")
         text = str(exc)
+        if isinstance(exc, http.client.LineTooLong) or (
+                isinstance(exc, http.client.HTTPException) and text.startswith("got more than")):
+            detail = (f"{self.endpoint}: the endpoint did not answer as an OpenAI API (its "
+                      f"HTTP header is malformed: {redact(text)[:80]}); check base_url")
+            log.error("%s", detail)
+            return ChatReply(None, "bad_response", detail=detail)
         if self._proxy is not None and text.startswith("Tunnel connection failed"):
             if " 407 " in f"{text} ":
                 log.error("%s: the proxy %s refused the credentials (HTTP 407): check the "
@@ -341,15 +357,30 @@ class ChatClient:
         return ChatReply(None, "connection_error")
 
 
-def _read_completion(payload: bytes) -> ChatReply:
-    """The assistant text of a chat-completions body, or ``bad_response``."""
+def _not_api(endpoint: str, content_type: str, what: str) -> ChatReply:
+    ctype = redact(content_type.split(";")[0].strip()[:60]) or "none given"
+    return ChatReply(None, "bad_response", 200,
+                     detail=f"{endpoint}: the endpoint did not answer as an OpenAI API "
+                            f"(content-type {ctype}; {what}): check base_url (a proxy or a "
+                            "login page may have answered)")
+
+
+def _read_completion(payload: bytes, content_type: str = "application/json",
+                     endpoint: str = "the endpoint") -> ChatReply:
+    """The assistant text of a chat-completions body, or ``bad_response`` /
+    ``reasoning_only`` with a :attr:`ChatReply.detail` saying what was wrong."""
     if len(payload) > MAX_RESPONSE_BYTES:
-        return ChatReply(None, "bad_response", 200)
+        return ChatReply(None, "bad_response", 200,
+                         detail=f"{endpoint}: the answer is larger than "
+                                f"{MAX_RESPONSE_BYTES // 2**20} MB")
     try:
         body = json.loads(payload.decode("utf-8"))
+    except (ValueError, RecursionError):
+        return _not_api(endpoint, content_type, "the body is not JSON")
+    try:
         message = body["choices"][0]["message"]
-    except (ValueError, KeyError, IndexError, TypeError, RecursionError):
-        return ChatReply(None, "bad_response", 200)
+    except (KeyError, IndexError, TypeError):
+        return _not_api(endpoint, content_type, "no choices[0].message in the body")
     if not isinstance(message, dict):
         return ChatReply(None, "bad_response", 200)
     finish = body["choices"][0].get("finish_reason")
@@ -361,6 +392,14 @@ def _read_completion(payload: bytes) -> ChatReply:
                           if isinstance(p, dict) and isinstance(p.get("text"), str))
     if isinstance(refusal, str) and refusal and not content:
         return ChatReply(refusal, "refusal", 200, refusal=refusal, finish_reason=finish)
+    thought = next((message.get(k) for k in ("reasoning_content", "reasoning")
+                    if isinstance(message.get(k), str) and message.get(k).strip()), None)
+    if not content and thought is not None and finish != "length":
+        return ChatReply(None, "reasoning_only", 200, finish_reason=finish,
+                         detail=f"{endpoint}: the answer has no content, only the model's "
+                                "reasoning (content null): not read as an answer; the "
+                                "server's reasoning parser may be swallowing the reply, or "
+                                "raise max_tokens")
     if content is None and finish == "length":  # all tokens spent (on hidden reasoning)
         content = ""
     if not isinstance(content, str):

@@ -31,15 +31,13 @@ import urllib.request
 from dataclasses import dataclass
 
 from vlm_vpr_ros.errors import ConfigError
-from vlm_vpr_ros.redact import redact, register_secret
+from vlm_vpr_ros.redact import redact, register_secret, secret_query_name
 
 log = logging.getLogger(__name__)
 
 _LOOPBACK = ("127.", "localhost", "::1", "[::1]")
 AUTH_HEADERS = ("auto", "bearer", "api-key", "none")
 _AZURE_HOST = (".openai.azure.com", ".cognitiveservices.azure.com", ".services.ai.azure.com")
-_SECRET_QUERY = ("key", "code", "sig", "signature", "token", "secret", "password", "api-key",
-                 "api_key", "apikey", "access_token")
 _COMPLETIONS = "/chat/completions"
 
 
@@ -76,9 +74,11 @@ class Endpoint:
         parts = _split(base_url, "base_url")
         register_secret(urllib.parse.unquote(parts.password or ""))  # never log URL userinfo
         register_secret(urllib.parse.unquote(parts.username or ""))
-        for name, value in urllib.parse.parse_qsl(parts.query, keep_blank_values=True):
-            if name.lower() in _SECRET_QUERY:
-                register_secret(value)
+        for pair in parts.query.split("&"):
+            name, _, value = pair.partition("=")
+            if secret_query_name(urllib.parse.unquote_plus(name)):
+                register_secret(value)  # as sent (percent-encoded) and as decoded
+                register_secret(urllib.parse.unquote_plus(value))
         path = parts.path.rstrip("/")
         if not path.endswith(_COMPLETIONS):
             path += _COMPLETIONS

@@ -3,9 +3,14 @@
 
 Both return failures as :class:`PriorResult` values with a ``reason`` — ``timeout``,
 ``http_429``, ``http_500``, ``connection_error``, ``tls_error``, ``proxy_auth``,
-``bad_response``, ``refusal``, ``truncated``, ``no_coordinates``, ``out_of_range``,
-``suspicious_null_island``, ``suspicious_injection``, ``no_image``, ``bad_image``,
-``cancelled`` — never as exceptions. ``openai``'s :meth:`~OpenAIPrior.request` returns a future
+``bad_response``, ``reasoning_only``, ``refusal``, ``truncated``, ``no_coordinates``,
+``out_of_range``, ``suspicious_null_island``, ``suspicious_injection``,
+``suspicious_ambiguous``, ``no_image``, ``bad_image``, ``cancelled`` — never as exceptions;
+``extra["detail"]`` (also logged once as a warning) says in one line what the endpoint did
+wrong when the reason alone would not (a non-API answer and its content type, a body cut
+off, an answer only in ``reasoning``). An answer cut at the token limit
+(``finish_reason: length``) is ``truncated`` even when a position can be read from it: it is
+not the model's final answer. ``openai``'s :meth:`~OpenAIPrior.request` returns a future
 at once; the work runs in a bounded thread pool (``max_concurrency``).
 
 Every answer text passes the redaction point before it is parsed, cached or returned (an
@@ -263,20 +268,26 @@ class OpenAIPrior(PriorProvider):
             return PriorResult(None, self.source, "refusal", latency, redact(reply.refusal),
                                extra)
         if not reply.ok or reply.content is None:
-            if detail := self._explain(reply):
+            if detail := (self._explain(reply) or reply.detail):
                 extra["detail"] = detail
+                if detail == reply.detail:
+                    self._tell(detail)
             return PriorResult(None, self.source, reply.reason or "bad_response", latency,
                                None, extra)
         result = result_from_text(reply.content, self.source, self.parser, latency, extra, path)
-        if not result.ok and reply.finish_reason == "length" and result.reason in (
-                "empty", "no_coordinates"):
+        if reply.finish_reason == "length" and (not result.ok and result.reason in (
+                "empty", "no_coordinates") or result.extra.get("parse_path") != "structured"):
+            # cut at the token limit: not the model's final answer, whatever it holds (a
+            # guess it was still weighing): never a prior; a position read is kept for audit
             limit = f"{self.options.token_param}={self.options.max_tokens}"
-            detail = (f"the answer was cut at {limit} before the coordinates (reasoning "
-                      "models spend tokens on hidden reasoning): raise the prior option "
-                      "max_tokens")
+            detail = (f"the answer was cut at {limit} before it was finished (reasoning "
+                      "models spend tokens on hidden reasoning): not used; raise the prior "
+                      "option max_tokens")
             self._tell(detail)
+            audit = ({"answer_lat": result.prior.lat, "answer_lon": result.prior.lon}
+                     if result.prior is not None else {})
             return PriorResult(None, self.source, "truncated", latency, result.raw_text,
-                               {**result.extra, "detail": detail})
+                               {**result.extra, **audit, "detail": detail})
         if self.cache is not None:
             self.cache.put(key, reply.content, model=self.model, prompt=self.prompt.id,
                            image_sha256=digest, endpoint=self.client.endpoint,

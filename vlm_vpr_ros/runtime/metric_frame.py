@@ -7,11 +7,16 @@ cartesian transform (``broadcast_cartesian_transform``):
   zone is the fix's own (standard zones with the Norway 32V and Svalbard 31X-37X exceptions,
   as GeographicLib's ``UTMUPS::StandardZone``) or a fixed one (``utm_zone``): navsat_transform
   keeps the zone of its datum, so a robot near a zone border should fix it. UTM covers
-  latitudes -80..84; outside them (UPS) no pose is made.
+  latitudes -80..84; outside them (UPS) no pose is made. A fixed zone serves fixes up to
+  :data:`MAX_ZONE_OFFSET_DEG` of longitude from its central meridian (two zone widths: the
+  scale error of the projection stays under 2.2 %); a fix farther away (a wrong fix, or the
+  wrong zone configured) gets no pose, with the reason, not finite nonsense.
 * ``local_enu``: the tangent plane at a datum (latitude, longitude, height 0 on the
   ellipsoid; GeographicLib's ``LocalCartesian`` used by navsat_transform's
   ``use_local_cartesian``), rotated by ``datum_yaw`` (the frame's x axis, counter-clockwise
-  from east) so that it can be a robot's ``map`` frame.
+  from east) so that it can be a robot's ``map`` frame. A tangent plane is a local frame: a fix
+  more than :data:`MAX_LOCAL_KM` from the datum (the plane is then ~20 km below the ground)
+  gets no pose, with the reason.
 
 Projections are PROJ's (pyproj: ``+proj=utm``, ``+proj=cart`` + ``+proj=topocentric``), not
 hand-written series. The pose's covariance is the fix's horizontal covariance rotated into the
@@ -34,6 +39,10 @@ KINDS = ("utm", "local_enu", "none")
 #: variance of an unknown angle (rad^2): sigma of a full turn
 UNKNOWN_ANGLE_VAR = (2.0 * math.pi) ** 2
 UTM_LAT_RANGE = (-80.0, 84.0)
+#: a fixed ``utm_zone`` serves fixes up to this far (degrees of longitude) from its meridian
+MAX_ZONE_OFFSET_DEG = 12.0
+#: a ``local_enu`` frame serves fixes up to this far (km) from its datum
+MAX_LOCAL_KM = 500.0
 
 
 def utm_zone(lat: float, lon: float) -> int:
@@ -103,8 +112,22 @@ class MetricFrame:
                 raise ConfigError(f"latitude {lat:.4f} is outside UTM ({lo:g}..{hi:g}); use "
                                   "pose_frame local_enu there")
             zone = self.zone or utm_zone(lat, lon)
+            off = abs(((lon - (zone * 6.0 - 183.0)) + 180.0) % 360.0 - 180.0)
+            if off > MAX_ZONE_OFFSET_DEG:
+                raise ConfigError(f"longitude {lon:.4f} is {off:.1f} deg from the central "
+                                  f"meridian of the fixed UTM zone {zone} (more than "
+                                  f"{MAX_ZONE_OFFSET_DEG:g}): no pose; a wrong fix, or set "
+                                  "utm_zone 0 (the fix's own zone)")
             x, y = self._transformer((zone, lat >= 0.0)).transform(lon, lat)
             return float(x), float(y), float(alt)
+        from vlm_vpr_ros.geodesy import haversine_km
+
+        lat0, lon0 = self.datum  # type: ignore[misc]
+        km = float(haversine_km(lat0, lon0, lat, lon))
+        if km > MAX_LOCAL_KM:
+            raise ConfigError(f"the fix ({lat:.4f}, {lon:.4f}) is {km:.0f} km from the "
+                              f"local_enu datum (more than {MAX_LOCAL_KM:g} km): no pose; a "
+                              "wrong fix, or the datum of another place")
         e, n, u = self._transformer("enu").transform(lon, lat, alt)
         c, s = math.cos(self.yaw), math.sin(self.yaw)
         return c * e + s * n, -s * e + c * n, float(u)
