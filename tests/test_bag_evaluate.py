@@ -59,7 +59,7 @@ def _rows(path: Path) -> list[dict]:
 
 def test_bag_equals_localize_on_files(cbag, pipe, demo_data, queries, tmp_path):
     from vlm_vpr_ros.localization.batch import localize_files
-    from vlm_vpr_ros.evaluation.metrics import evaluate_results_csv
+    from vlm_vpr_ros.evaluation.results_csv import evaluate_results_csv
     from vlm_vpr_ros.files.csvio import read_file_column
     from vlm_vpr_ros.files.csvio import write_csv_atomic
     from vlm_vpr_ros.localization.batch import RESULT_FIELDS

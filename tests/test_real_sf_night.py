@@ -194,7 +194,8 @@ def _twin_verified(twin, base, sf_described, priors, fused_hits, shift):
     """The twin map with its features (the SF references' own, copied to the look-alikes) and
     its own leave-one-out calibration: a verified fix never lands on the wrong continent, and
     with a prior on the wrong continent there is none (the answer is prior_resolved)."""
-    from vlm_vpr_ros.mapping.local_features import ReferenceExtractor, calibrate_map, store_features
+    from vlm_vpr_ros.mapping.local_features import (ReferenceExtractor, calibrate_map,
+                                                    store_features)
     from vlm_vpr_ros.maps.features import FeatureStore
     from vlm_vpr_ros.maps.reference_map import ReferenceMap
 

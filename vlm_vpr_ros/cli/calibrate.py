@@ -168,7 +168,8 @@ def _calibrate(args: argparse.Namespace) -> int:
         path = save_calibration(ref_map, doc)
         print(f"wrote {path} (used from the next start of the node / CLI)")
     if verified is not None:
-        from vlm_vpr_ros.localization.verification.p_correct import load_doc, save_doc, with_user_negatives
+        from vlm_vpr_ros.localization.verification.p_correct import (load_doc, save_doc,
+                                                                     with_user_negatives)
 
         scores, n = verified
         path = save_doc(ref_map, with_user_negatives(

@@ -6,7 +6,6 @@ import argparse
 import json
 import logging
 import os
-import sys
 from pathlib import Path
 
 from vlm_vpr_ros.cli.common import (add_descriptor_option_args, add_localizer_args,
@@ -382,7 +381,8 @@ def _localize_descriptors(args: argparse.Namespace, files: list[str]) -> int:
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from vlm_vpr_ros.evaluation import integrity, integrity_tables
-    from vlm_vpr_ros.evaluation.metrics import evaluate_results_csv, format_table
+    from vlm_vpr_ros.evaluation.metrics import format_table
+    from vlm_vpr_ros.evaluation.results_csv import JUNK, evaluate_results_csv
 
     alert_m = integrity.check_alert_limit(args.alert_limit_m)
     summary, extra = evaluate_results_csv(args.results, args.ground_truth)
@@ -390,13 +390,12 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         args.results, args.ground_truth, alert_m,
         args.integrity_out or integrity.default_out_dir(args.results), args.overwrite)
     if args.json:
-        json.dump({**summary, "recall_pct": extra["recall_pct"], "fixes": extra["fixes"],
-                   "coverage68_pct": round(extra["coverage_pct"], 2),
-                   "coverage95_pct": (None if extra["coverage95_pct"] is None
-                                      else round(extra["coverage95_pct"], 2)),
-                   "integrity": integ, "junk_rows": extra["junk_rows"], "junk": extra["junk"]},
-                  sys.stdout)
-        sys.stdout.write("\n")
+        print(json.dumps({**summary, "recall_pct": extra["recall_pct"], "fixes": extra["fixes"],
+                          "coverage68_pct": round(extra["coverage_pct"], 2),
+                          "coverage95_pct": (None if extra["coverage95_pct"] is None
+                                             else round(extra["coverage95_pct"], 2)),
+                          "integrity": integ, "junk_rows": extra["junk_rows"],
+                          "junk": extra["junk"]}))
         return 0
     print(format_table({"results": summary}, title=f"accuracy of {args.results}"))
     c95 = extra["coverage95_pct"]
@@ -406,8 +405,6 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
           + f"; {extra['flagged']} flagged rows (a fallback flag); {extra['missing_gt']} rows "
           "without ground truth")
     if extra["junk_rows"]:
-        from vlm_vpr_ros.evaluation.results_csv import JUNK
-
         print(f"junk rows, counted but not scored: {extra['junk_rows']} ("
               + ", ".join(f"{JUNK[k]}: {v}" for k, v in extra["junk"].items())
               + f"); e.g. {extra['junk_examples'][0]}")

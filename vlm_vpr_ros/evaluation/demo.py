@@ -132,7 +132,7 @@ def run_step(ref_map, runs: dict[str, Run], files: list[str], qdesc: np.ndarray,
     ``verifier`` (on ``ref_map``) with the queries' local features ``qlocal``. Writes
     ``out/results_<i>.csv``; returns (summaries, per-run errors/coverage/fixes); a verified
     run's summary carries its ``fixes`` (None for the others)."""
-    from vlm_vpr_ros.evaluation.metrics import evaluate_results_csv
+    from vlm_vpr_ros.evaluation.results_csv import evaluate_results_csv
     from vlm_vpr_ros.files.csvio import write_csv_atomic
     from vlm_vpr_ros.localization.batch import RESULT_FIELDS
     from vlm_vpr_ros.localization.localizer import Localizer

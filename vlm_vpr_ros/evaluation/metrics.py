@@ -148,15 +148,6 @@ def _top_positions(text: str | None) -> list[tuple[float, float]]:
     return out
 
 
-def evaluate_results_csv(results_csv, ground_truth_csv,
-                         thresholds: Sequence[float] = THRESHOLDS_KM) -> tuple[dict, dict]:
-    """Summary (JSON shape of ``vlm-vpr evaluate``) of a results CSV, plus extra statistics;
-    streamed, junk rows counted and reported: :mod:`vlm_vpr_ros.evaluation.results_csv`."""
-    from vlm_vpr_ros.evaluation.results_csv import evaluate_stream
-
-    return evaluate_stream(results_csv, ground_truth_csv, thresholds)
-
-
 def fix_metrics(statuses: Sequence[str], errs: Sequence[float | None]) -> dict:
     """``{"n", "rate_pct", "precision25_pct", "precision50_pct"}``: how many answers have
     status ``fix`` (the NavSatFix STATUS_FIX rule, docs/verification.md), their share of all

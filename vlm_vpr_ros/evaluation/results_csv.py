@@ -30,9 +30,10 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from vlm_vpr_ros.errors import DataError
+from vlm_vpr_ros.evaluation.metrics import RECALL_AT, _top_positions, summarize_array
 from vlm_vpr_ros.files.csvio import NUMBER, parse_latlon, stream_rows
 from vlm_vpr_ros.geodesy import THRESHOLDS_KM, haversine_km
-from vlm_vpr_ros.evaluation.metrics import RECALL_AT, _top_positions, summarize_array
+from vlm_vpr_ros.types import FALLBACK_FLAGS
 
 log = logging.getLogger(__name__)
 
@@ -142,12 +143,11 @@ class GroundTruth:
         return g
 
 
-def evaluate_stream(results_csv: Any, ground_truth_csv: Any,
+def evaluate_results_csv(results_csv: Any, ground_truth_csv: Any,
                     thresholds: Sequence[float] = THRESHOLDS_KM) -> tuple[dict, dict]:
-    """``(summary, extra)`` of :func:`vlm_vpr_ros.evaluation.metrics.evaluate_results_csv`;
-    ``extra`` adds ``junk_rows``, ``junk`` (count by reason) and ``junk_examples``."""
-    from vlm_vpr_ros.types import FALLBACK_FLAGS
-
+    """``(summary, extra)`` of a results CSV against ground truth (the JSON shape of
+    ``vlm-vpr evaluate``); ``extra`` adds ``junk_rows``, ``junk`` (count by reason) and
+    ``junk_examples``."""
     with contextlib.suppress(OSError):
         if os.path.samefile(results_csv, ground_truth_csv):
             raise DataError(f"--results and --ground-truth are the same file ({results_csv}): "

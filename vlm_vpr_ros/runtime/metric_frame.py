@@ -34,6 +34,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from vlm_vpr_ros.errors import ConfigError
+from vlm_vpr_ros.geodesy import haversine_km
 
 KINDS = ("utm", "local_enu", "none")
 #: variance of an unknown angle (rad^2): sigma of a full turn
@@ -120,8 +121,6 @@ class MetricFrame:
                                   "utm_zone 0 (the fix's own zone)")
             x, y = self._transformer((zone, lat >= 0.0)).transform(lon, lat)
             return float(x), float(y), float(alt)
-        from vlm_vpr_ros.geodesy import haversine_km
-
         lat0, lon0 = self.datum  # type: ignore[misc]
         km = float(haversine_km(lat0, lon0, lat, lon))
         if km > MAX_LOCAL_KM:
