@@ -158,8 +158,42 @@ def _fatal(logger, exc: Exception) -> int:
     return 2
 
 
+def usage(lifecycle: bool = False) -> str:
+    """``--help``: how to start the node and every parameter (name, type, default, range or
+    choices, runtime-writable, description), from the schema the node declares."""
+    from vlm_vpr_ros.runtime.params import NESTED, PARAMETER_SPECS
+
+    exe = "vlm_vpr_lifecycle_node" if lifecycle else "vlm_vpr_node"
+    lines = [f"usage: {exe} [--help] --ros-args -p map_dir:=MAP [-p name:=value ...] "
+             "[--params-file FILE]",
+             "       launch_scripts/run_node.sh [--lifecycle] [PARAMS.yaml] [ros-args...]",
+             "", "Image in, NavSatFix (fix), pose, /diagnostics out; relocalize services and "
+             "action (docs/node.md).", "", "parameters (* = may change at run time):"]
+    for spec in PARAMETER_SPECS.values():
+        extra = ""
+        if spec.choices:
+            extra = f" {{{', '.join(spec.choices)}}}"
+        elif spec.range is not None:
+            extra = f" [{spec.range[0]:g}, {spec.range[1]:g}]"
+        mark = " " if spec.read_only else "*"
+        lines.append(f" {mark} {spec.name} ({spec.kind}, default {spec.default!r}){extra}")
+        lines.append(f"      {spec.doc}")
+    lines.append("   " + ", ".join(f"{n}.<setting>" for n in NESTED) + " (nested settings: "
+                 "prior provider, descriptor, verification's features and matcher)")
+    return "\n".join(lines)
+
+
+def _wants_help(argv: list[str]) -> bool:
+    """``--help`` / ``-h`` before any ``--ros-args`` (after it they are ROS's)."""
+    head = argv[1:argv.index("--ros-args")] if "--ros-args" in argv else argv[1:]
+    return any(a in ("--help", "-h") for a in head)
+
+
 def _run(cls: type, args: list[str] | None) -> int:
     argv = list(sys.argv if args is None else args)
+    if _wants_help(argv):
+        print(usage(cls is VlmVprLifecycleNode))
+        return 0
     logger = rclpy.logging.get_logger(NODE_NAME)
     try:  # what the command line asked for (rcl drops a -p whose type clashes with a file)
         requested = requested_parameters(argv, NODE_NAME)

@@ -160,7 +160,7 @@ class RelocalizeResult:
 
 #: what happened to a relocalize request (vlm_vpr_interfaces/Answer OUTCOME_*)
 OUTCOMES = ("answered", "failed", "no_frame", "timeout", "not_active", "scheduled",
-            "cancelled", "busy")
+            "cancelled", "busy", "rejected")
 
 
 def await_answer(ticket: RelocalizeTicket, wait_s: float,
