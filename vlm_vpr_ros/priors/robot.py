@@ -27,6 +27,7 @@ from __future__ import annotations
 import concurrent.futures as cf
 import logging
 import math
+import re
 import threading
 import time
 from dataclasses import dataclass
@@ -106,6 +107,11 @@ def grown_sigma_m(est: RobotEstimate, now_s: float, growth_m_per_s: float) -> fl
     return est.sigma_m + growth_m_per_s * max(0.0, now_s - est.stamp_s)
 
 
+def _kind(why: str) -> str:
+    """The kind of a problem: its text without the numbers (one WARN per kind)."""
+    return re.sub(r"\(?[-+]?(?:\d[\d.e+-]*|nan|inf)\)?", "#", why)
+
+
 class TopicPrior(PriorProvider):
     """Prior provider fed with the robot's own estimates; ``fallback`` answers when it has
     none (or first, with ``provider_first``). Thread-safe: ``update`` comes from a ROS
@@ -128,7 +134,7 @@ class TopicPrior(PriorProvider):
         with self._lock:
             if why:
                 self.rejected += 1
-                kind = why.split(" ", 1)[0]
+                kind = _kind(why)
                 if kind not in self._warned:
                     self._warned.add(kind)
                     log.warning("prior topic %s: ignoring an estimate from %s: %s (further ones "
@@ -143,7 +149,7 @@ class TopicPrior(PriorProvider):
         """A message that could not even be converted (bad covariance, unknown frame)."""
         with self._lock:
             self.rejected += 1
-            kind = why.split(" ", 1)[0]
+            kind = _kind(why)
             if kind not in self._warned:
                 self._warned.add(kind)
                 log.warning("prior topic %s: ignoring a message from %s: %s (further ones like "
