@@ -28,7 +28,8 @@ from vlm_vpr_interfaces.srv import Relocalize as RelocalizeSrv
 
 from msg_adapters.answer import answer_msg
 from msg_adapters.navsat import fix_fields
-from vlm_vpr_ros.runtime.relocalize import STAGES, RelocalizeKind, RelocalizeResult
+from vlm_vpr_ros.runtime.relocalize import (STAGES, RelocalizeKind, RelocalizeResult,
+                                            no_answer_text)
 
 TYPED_SERVICE = "relocalize_typed"
 ACTION = "relocalize"
@@ -75,7 +76,7 @@ class TypedRelocalize:
             fields = fix_fields(out.hypothesis, node.policy)
         frame_id = (node.cfg.frame_id or out.frame.frame_id) if out is not None else ""
         if not message and out is None:
-            message = _no_answer_text(res, node.resolve_topic_name("fix"))
+            message = no_answer_text(res, node.resolve_topic_name("fix"))
         return answer_msg(res, fields, frame_id, message)
 
     def _run(self, request: Any, wait_s: float, cancelled=None, on_stage=None
@@ -123,17 +124,3 @@ class TypedRelocalize:
         else:
             goal_handle.abort()
         return result
-
-
-def _no_answer_text(res: RelocalizeResult, fix_topic: str) -> str:
-    return {
-        "not_active": "the node is not active: activate it first",
-        "scheduled": f"relocalization scheduled, not waited for; fixes go out on {fix_topic}",
-        "busy": ("relocalization scheduled, shared with the callers already waiting for it; "
-                 f"fixes go out on {fix_topic}"),
-        "no_frame": (f"no usable frame within {res.waited_s:.1f} s (camera silent?); the "
-                     "request is dropped, nothing will be published for it"),
-        "timeout": (f"no answer within {res.waited_s:.1f} s (stages: "
-                    f"{', '.join(res.stages)}); it will not be published as a relocalization"),
-        "cancelled": "cancelled; the answer will not be published as a relocalization",
-    }.get(res.code, res.code)

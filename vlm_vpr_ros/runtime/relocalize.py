@@ -203,6 +203,26 @@ def await_answer(ticket: RelocalizeTicket, wait_s: float,
                             tuple(ticket.stages))
 
 
+def no_answer_text(res: RelocalizeResult, fix_topic: str = "fix", label: str = "") -> str:
+    """The sentence for a caller that got no outcome (``res.code`` other than answered /
+    failed), ending with the code in brackets."""
+    what, kind = "relocalization", f" ({label})" if label else ""
+    text = {
+        "scheduled": (f"{what} scheduled{kind} (not waited for: relocalize_wait_s 0); the fix "
+                      f"will be published on {fix_topic}"),
+        "busy": (f"{what} scheduled{kind}, shared with the callers already waiting for it; the "
+                 f"fix will be published on {fix_topic}"),
+        "no_frame": (f"{what} gave no result within {res.waited_s:.1f} s: no usable frame "
+                     "arrived (camera silent?); the request is dropped, it will not be "
+                     "published"),
+        "timeout": (f"{what} gave no result within {res.waited_s:.1f} s (stages: "
+                    f"{', '.join(res.stages)}); it will not be published as a relocalization"),
+        "cancelled": f"{what} cancelled; it will not be published as a relocalization",
+        "not_active": "the node is not active (or stopped localizing): activate it first",
+    }.get(res.code, f"{what}: {res.code}")
+    return text if res.code in ("scheduled", "busy") else f"{text} [{res.code}]"
+
+
 def outcome_summary(outcome: Any, waited_s: float,
                     fix_topic: str = "fix") -> tuple[bool, str]:
     """(success, human-readable sentence) answering a relocalize request (``outcome``: the

@@ -26,7 +26,7 @@ import dataclasses
 import logging
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Callable
 
 import numpy as np
@@ -36,11 +36,12 @@ from vlm_vpr_ros.localization.localizer import LocalizerConfig
 from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
 from vlm_vpr_ros.priors.base import PriorProvider, PriorQuery, PriorResult
 from vlm_vpr_ros.runtime import debug_view
+from vlm_vpr_ros.runtime.outcome import Frame, QueryOutcome
 from vlm_vpr_ros.runtime.relocalize import (RelocalizeKind, RelocalizeResult,
-                                            RelocalizeTicket, await_answer, outcome_summary)
+                                            RelocalizeTicket, await_answer, no_answer_text,
+                                            outcome_summary)
 from vlm_vpr_ros.redact import redact
 from vlm_vpr_ros.runtime.stats import RuntimeStats, Throttle
-from vlm_vpr_ros.types import Hypothesis
 
 log = logging.getLogger(__name__)
 MODES = ("continuous", "on_trigger")
@@ -66,16 +67,6 @@ def reload_pipeline(pipe: LocalizationPipeline) -> tuple[LocalizationPipeline | 
         return None, redact(f"internal error {type(exc).__name__}: {exc}")
 
 
-def _not_answered(res: RelocalizeResult, fix_topic: str) -> str:
-    """The Trigger answer of a caller that got no outcome (code no_frame/timeout/...)."""
-    why = {"no_frame": "no usable frame arrived", "timeout": "the answer did not come",
-           "cancelled": "cancelled", "not_active": "the node stopped localizing"}[res.code]
-    after = (" it will not be published (nobody waits for it any more)"
-             if res.code != "not_active" else "")
-    return (f"relocalization gave no result within {res.waited_s:.1f} s: {why};{after} "
-            f"[{res.code}] (fixes go out on {fix_topic})")
-
-
 @dataclass(frozen=True)
 class RuntimeConfig:
     mode: str = "continuous"
@@ -90,37 +81,6 @@ class RuntimeConfig:
                 and self.max_frame_age_s > 0):
             raise ConfigError("min_period_s must be >= 0; prior_timeout_s and "
                               "max_frame_age_s must be > 0")
-
-
-@dataclass
-class Frame:
-    """A received, not yet decoded image message."""
-
-    msg: Any
-    stamp_ns: int
-    frame_id: str
-    received: float = field(default_factory=time.monotonic)
-    seq: int = 0  # arrival number (set by QueryRuntime.on_frame)
-
-    @property
-    def key(self) -> str:
-        """Lookup key handed to the prior provider: the stamp as ``sec.nanosec``."""
-        return f"{self.stamp_ns // 1_000_000_000}.{self.stamp_ns % 1_000_000_000:09d}"
-
-
-@dataclass
-class QueryOutcome:
-    frame: Frame
-    trigger: str  # "continuous" or "relocalize"
-    hypothesis: Hypothesis | None = None
-    error: str = ""  # why there is no hypothesis
-    started: float = 0.0
-    finished: float = 0.0
-    timings_ms: dict[str, float] = field(default_factory=dict)
-    rgb: np.ndarray | None = field(default=None, repr=False)  # kept when keep_images is set
-    #: the answer's inlier matches, (n, 4) fractions of the query and reference images
-    #: (debug_view.winner_matches; only with keep_images and a verified answer)
-    matches: np.ndarray | None = field(default=None, repr=False)
 
 
 class QueryRuntime:
@@ -258,13 +218,8 @@ class QueryRuntime:
         """Answer one relocalize Trigger call: (success, sentence) within ``wait_s`` at most
         (:meth:`relocalize_request`). ``wait_s`` 0: not waited, never success."""
         res = self.relocalize_request(kind, wait_s)
-        if res.code in ("scheduled", "busy"):
-            shared = (", shared with the callers already waiting for it"
-                      if res.code == "busy" else " (not waited for: relocalize_wait_s 0)")
-            return False, (f"relocalization scheduled ({kind.label}){shared}; the fix will be "
-                           f"published on {fix_topic}")
         if res.outcome is None:
-            return False, _not_answered(res, fix_topic)
+            return False, no_answer_text(res, fix_topic, kind.label)
         return outcome_summary(res.outcome, res.waited_s, fix_topic)
 
     def relocalize_request(self, kind: RelocalizeKind, wait_s: float,
