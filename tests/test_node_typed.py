@@ -180,19 +180,18 @@ def test_late_joiner_gets_no_pose_older_than_the_latest_fix(demo_map, rgb, tmp_p
     run = _Run(params, tmp_path / "node.log", 153)
     try:
         live = run.client.record(NavSatFix, "fix")
-        fut_holder = []
         client = run.client.node.create_client(Trigger, "relocalize")
         assert client.wait_for_service(timeout_sec=30.0)
         run.frame(rgb)
         fut = client.call_async(Trigger.Request())
         run.client.wait_for(fut.done, 90.0, tick=lambda: run.frame(rgb), period_s=0.5)
         assert fut.done() and fut.result().success, run.node.log()
-        fut_holder.append(fut)
         # then a NO_FIX: a black frame (featureless: never a fix)
         black = np.zeros_like(rgb)
         n = len(live)
-        run.frame(black)
-        fut = client.call_async(Trigger.Request())
+        nxt = run.client.node.create_client(Trigger, "relocalize_next_frame")
+        assert nxt.wait_for_service(timeout_sec=30.0)
+        fut = nxt.call_async(Trigger.Request())
         run.client.wait_for(fut.done, 90.0, tick=lambda: run.frame(black), period_s=0.5)
         assert fut.done() and not fut.result().success
         assert run.client.wait_for(lambda: len(live) > n and live[-1][0].status.status == -1,

@@ -277,5 +277,9 @@ class _Wiring(_Parameters):
                   + pipe.verifier.calibration_source,
                   "map_references": pipe.map.n_references,
                   "map_generation": pipe.map.manifest.get("generation", 0), **values}
+        robot = getattr(self, "_robot_prior", None)
+        if robot is not None:  # the robot's own estimate as the prior (prior_topic)
+            values["prior_topic_used"] = robot.provider.used
+            values["prior_topic_rejected"] = robot.provider.rejected
         self.outputs.publish_diagnostics(self.get_clock().now().nanoseconds, level, message,
                                          values, self.cfg.hardware_id)
