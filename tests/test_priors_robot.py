@@ -169,3 +169,47 @@ def test_cancelling_a_provider_first_request_cancels_the_provider():
     p = TopicPrior(Pending(), TopicPriorConfig(order="provider_first"), Clock())
     fut = p.request(PriorQuery())
     assert fut.cancel() and inner.cancelled()
+
+
+def _hyp(winner_inliers, rival_inliers, rival_km, pu, prior_km, sigma_km):
+    from vlm_vpr_ros.types import Candidate, Hypothesis
+
+    la, lo = 37.77, -122.42
+    rla = la + rival_km / 111.2
+    pla = la - prior_km / 111.2
+    cands = [Candidate("w", la, lo, 0.1, "s", inliers=winner_inliers),
+             Candidate("r", rla, lo, 0.2, "s", inliers=rival_inliers)]
+    return Hypothesis(la, lo, "w", "s", 200.0, cands, prior=Prior(pla, lo, "topic", sigma_km),
+                      p_correct=pu, p_correct_without_prior=pu, inliers=winner_inliers,
+                      radius95_m=400.0, verification="verified", flags=("verified",))
+
+
+def test_a_trusted_prior_weighs_in_only_when_consistent_and_supported():
+    from vlm_vpr_ros.localization.verification import prior_trust
+    from vlm_vpr_ros.localization.verification.status import StatusPolicy
+
+    pol = StatusPolicy(trust_operator_prior=True)
+    # honest: the prior (sigma 100 m) is 100 m from the answer, the look-alike 500 m away
+    h = _hyp(119, 96, 0.5, 0.551, 0.1, 0.1)
+    assert prior_trust.applies(h, pol)
+    prior_trust.weigh_trusted_prior(h)
+    assert h.p_correct > 0.99 and "prior_inconsistent" not in h.flags
+    # the same look-alike only 120 m from the prior: the prior cannot tell them apart
+    h = _hyp(119, 96, 0.02, 0.551, 0.1, 0.1)
+    prior_trust.weigh_trusted_prior(h)
+    assert h.p_correct < 0.95
+    # a liar: 2 km off claiming 100 m. Winner far from it: the prior adds nothing
+    h = _hyp(119, 96, 0.5, 0.551, 2.0, 0.1)
+    prior_trust.weigh_trusted_prior(h)
+    assert h.p_correct == 0.551 and "prior_inconsistent" in h.flags
+    # ... or a wrong winner near it that geometry does not support (a far place has more
+    # inliers: pu 0.06; or noise-level inliers)
+    for inl, rival, pu in ((16, 253, 0.059), (9, 11, 0.409)):
+        h = _hyp(inl, rival, 2.0, pu, 0.1, 0.1)
+        prior_trust.weigh_trusted_prior(h)
+        assert h.p_correct == pu and "prior_inconsistent" in h.flags
+    # not applied without trust, or for a prior without its own sigma
+    assert not prior_trust.applies(_hyp(119, 96, 0.5, 0.5, 0.1, 0.1), StatusPolicy())
+    h = _hyp(119, 96, 0.5, 0.5, 0.1, 0.1)
+    h.prior = Prior(h.prior.lat, h.prior.lon, "openai")
+    assert not prior_trust.applies(h, pol)

@@ -38,6 +38,7 @@ from rclpy.task import Future
 from vlm_vpr_ros.errors import ConfigError, VlmVprError
 from vlm_vpr_ros.runtime.params import requested_parameters
 from vlm_vpr_ros.runtime.worker import MAX_WAITERS
+from vlm_vpr_ros.ros.malloc import tune_malloc
 from vlm_vpr_ros.ros.wiring import _Wiring
 from vlm_vpr_ros.redact import redact
 
@@ -194,6 +195,7 @@ def _run(cls: type, args: list[str] | None) -> int:
     if _wants_help(argv):
         print(usage(cls is VlmVprLifecycleNode))
         return 0
+    tune_malloc()  # before any thread starts (RSS flat under a camera: docs/node.md)
     logger = rclpy.logging.get_logger(NODE_NAME)
     try:  # what the command line asked for (rcl drops a -p whose type clashes with a file)
         requested = requested_parameters(argv, NODE_NAME)

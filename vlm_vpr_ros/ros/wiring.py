@@ -25,6 +25,7 @@ from msg_adapters.image import encoded_bytes, message_to_rgb, stamp_ns
 from vlm_vpr_ros.errors import ConfigError, MapError
 from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
 from vlm_vpr_ros.priors import create_prior_provider
+from vlm_vpr_ros.ros.malloc import trim_malloc
 from vlm_vpr_ros.ros.outputs import Outputs, fix_policy
 from vlm_vpr_ros.ros.relocalize_server import TypedRelocalize
 from vlm_vpr_ros.ros.robot_prior import RobotPriorInput
@@ -101,6 +102,7 @@ class _Wiring(_Parameters):
             self._robot_prior = RobotPriorInput(self, cfg, self._provider, self.outputs.frame)
             self._provider = self._robot_prior.provider
         self._flag_log = Throttle(10.0)
+        self._trim_log = Throttle(60.0)
         self._stats = RuntimeStats(self._provider.name, cfg.mode)
         if cfg.publish_debug:
             self.outputs.ensure_debug()
@@ -268,6 +270,8 @@ class _Wiring(_Parameters):
     def _publish_diagnostics(self) -> None:
         if not self._active or self.pipeline is None or self.outputs is None:
             return
+        if self._trim_log.ready():  # freed image and feature buffers back to the OS
+            trim_malloc()
         runtime = self.runtime
         level, message, values = self._stats.report(busy=bool(runtime and runtime.busy))
         pipe = runtime.pipeline if runtime is not None else self.pipeline
