@@ -51,12 +51,13 @@ def main() -> int:
     ap.add_argument("--hz", type=float, default=30.0)
     ap.add_argument("--vlm-delay", type=float, default=2.5)
     ap.add_argument("--domain", type=int, default=156)
+    ap.add_argument("--qos", default="reliable", help="the node's image QoS (reliable)")
     ap.add_argument("--log", type=Path, default=Path("rss_node.log"))
     a = ap.parse_args()
     imgs = frames(a.data)
     server = ChatServer("slow", lat=37.7749, lon=-122.4194, delay_s=a.vlm_delay,
                         uncertainty_km=5.0).start()
-    params = {"map_dir": str(a.map), "min_period_s": 1.0, "qos": "reliable",
+    params = {"map_dir": str(a.map), "min_period_s": 1.0, "qos": a.qos,
               "prior_provider": "openai", "prior.base_url": server.base_url,
               "prior.max_retries": 0, "prior.timeout_s": a.vlm_delay + 30.0,
               "prior_timeout_s": a.vlm_delay + 30.0}
@@ -88,7 +89,7 @@ def main() -> int:
         server.stop()
     second = [m for t, m in trace if 60 <= t < 120]
     last = [m for t, m in trace if t >= trace[-1][0] - 60]
-    res = {"duration_s": a.duration, "queries": diag.get("queries"),
+    res = {"duration_s": a.duration, "queries": diag.get("queries"), "qos": a.qos,
            "malloc_arena_max": os.environ.get("MALLOC_ARENA_MAX", "2 (node default)"),
            "rss_2nd_minute_mib": round(statistics.fmean(second), 1) if second else None,
            "rss_last_minute_mib": round(statistics.fmean(last), 1) if last else None}
