@@ -220,7 +220,12 @@ def _run(cls: type, args: list[str] | None) -> int:
     executor = MultiThreadedExecutor(num_threads=EXECUTOR_THREADS)
     executor.add_node(node)
     try:
-        executor.spin_until_future_complete(node.finished)
+        # not spin_until_future_complete: rclpy's executor adds a done-callback to the future
+        # on every callback it dispatches, and node.finished never completes on the plain node
+        # (a list growing by ~80 closures a second under a 30 Hz camera)
+        node.finished.add_done_callback(lambda _f: executor.wake())
+        while rclpy.ok() and not node.finished.done():
+            executor.spin_once(timeout_sec=0.5)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
