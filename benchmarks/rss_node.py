@@ -38,8 +38,8 @@ def frames(data: Path) -> list:
     for f, _, _ in read_coords_csv(data / "queries.csv"):
         rgb = load_image(data / f)
         s = min(1.0, 640 / rgb.shape[1], 480 / rgb.shape[0])
-        out.append(cv2.resize(rgb, (max(1, round(rgb.shape[1] * s)),
-                                    max(1, round(rgb.shape[0] * s))), interpolation=cv2.INTER_AREA))
+        size = (max(1, round(rgb.shape[1] * s)), max(1, round(rgb.shape[0] * s)))
+        out.append(cv2.resize(rgb, size, interpolation=cv2.INTER_AREA))
     return out
 
 
