@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Start vlm_vpr_node without `ros2 launch` (pip-installed ROS 2 has no ros2 CLI).
 #
-#   launch_scripts/run_node.sh [--lifecycle] [PARAMS.yaml] [ros-args...]
+#   launch_scripts/run_node.sh [--help] [--lifecycle] [PARAMS.yaml] [ros-args...]
 #
 # --lifecycle starts the managed variant (unconfigured; drive it through its lifecycle services).
 # PARAMS.yaml defaults to launch_scripts/vlm_vpr_params.yaml; everything else is appended after
@@ -20,6 +20,9 @@ if [[ -z "$py" ]]; then
   if [[ -x "$repo/.venv/bin/python" ]]; then py="$repo/.venv/bin/python"; else py=python3; fi
 fi
 variant=()
+if [[ $# -gt 0 && ( "$1" == "--help" || "$1" == "-h" ) ]]; then
+  exec "$py" -m vlm_vpr_ros.ros.node --help  # the parameters, exit 0
+fi
 if [[ $# -gt 0 && "$1" == "--lifecycle" ]]; then
   variant=(--lifecycle)
   shift

@@ -9,12 +9,19 @@ cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
 "$PY" -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else 1)' \
   || { echo "Python 3.11+ required (found $("$PY" --version))" >&2; exit 1; }
-[ -x .venv/bin/python ] || "$PY" -m venv .venv
+if [ ! -x .venv/bin/python ]; then
+  "$PY" -m venv .venv
+  # a new venv holds none of the files cmake --install put into the old one: rebuild them
+  rm -f .venv/share/vlm_vpr_interfaces/.vlm_vpr_build_stamp
+fi
 .venv/bin/python -m pip install -q --upgrade pip
 torch_args=("${TORCH_SPEC:-torch==2.13.0}")
 if [ -n "${TORCH_INDEX_URL:-}" ]; then torch_args+=(--index-url "$TORCH_INDEX_URL"); fi
 .venv/bin/python -m pip install -q "${torch_args[@]}"
 .venv/bin/python -m pip install -q -r requirements.txt
+# The typed interfaces (vlm_vpr_interfaces: cmake + g++ against the wheels; skipped when up to
+# date) before the package that uses them.
+./scripts/build_interfaces.sh
 # The package itself (editable): console scripts vlm-vpr / vlm_vpr_node, share/ data files.
 .venv/bin/python -m pip install -q --no-deps --no-build-isolation -e .
 # Editable installs do not copy setup.py's data_files: register the package in the venv's ament

@@ -110,3 +110,24 @@ def test_answer_row_says_status_and_evidence():
     assert "p_correct 0.986, 274 inliers" in debug_view.caption(hyp, "STATUS_FIX", 14.0)[1]
     assert debug_view.winner_matches(None, None, hyp) is None  # nothing verified: no lines
     assert debug_view.match_pixels(None, (480, 640, 3), None) is None
+
+
+def test_a_strip_frame_stays_encodable_and_an_oversized_picture_fails_in_one_line(capfd):
+    """Issue 28/29: a 10000x10 frame gave 'JPEG encoding failed' plus a raw OpenCV line. The
+    panel is at most PANEL_MAX_WIDTH wide, so the picture encodes; a picture JPEG cannot hold
+    is refused before OpenCV sees it, with one line naming its size."""
+    import cv2
+    import numpy as np
+
+    from vlm_vpr_ros.errors import ImageDecodeError
+    from vlm_vpr_ros.runtime import debug_view
+
+    strip = np.full((10, 10000, 3), 200, np.uint8)
+    pic = debug_view.render(strip, None, ["STATUS_NO_FIX", ""], "reference")
+    assert pic.shape[0] == debug_view.PANEL_HEIGHT + debug_view.CAPTION_HEIGHT
+    assert pic.shape[1] <= 2 * debug_view.PANEL_MAX_WIDTH
+    data = debug_view.jpeg(pic)
+    assert cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR).shape == pic.shape
+    with pytest.raises(ImageDecodeError, match=r"70000x2 picture"):
+        debug_view.jpeg(np.zeros((2, 70000, 3), np.uint8))
+    assert "imencode" not in capfd.readouterr().err

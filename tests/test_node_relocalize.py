@@ -101,8 +101,9 @@ def test_waiting_is_bounded_and_extra_callers_hear_it_is_scheduled(pipeline, ima
         time.sleep(0.3)
         ok, text = rt.relocalize(3.0)
         assert not ok and "scheduled" in text and "shared" in text and "busy" not in text
-        ok0, text0 = rt.relocalize(0.0)
-        assert ok0 and "scheduled (latest frame, with prior)" in text0
+        ok0, text0 = rt.relocalize(0.0)  # "do not wait": never success
+        assert not ok0 and "scheduled (latest frame, with prior)" in text0
+        assert "not waited for" in text0
         waiting.join(10.0)
     finally:
         rt.stop()
@@ -127,3 +128,62 @@ def test_settings_change_from_the_next_query_on(pipeline, image):
         assert col.outcomes[-1].trigger == "continuous"
     finally:
         rt.stop()
+
+
+def test_an_answer_nobody_waits_for_is_never_published(pipeline, image):
+    """on_trigger: a caller that timed out before any frame came leaves nothing behind (the
+    frames that come later start no query); one that gives up during the query (a slow prior)
+    gets a timeout and the answer is not published (docs/node.md "Relocalize rules")."""
+    prov = SlowPrior(2.0)
+    rt, col = make(pipeline, prov, mode="on_trigger", max_frame_age_s=10.0)
+    try:
+        res = rt.relocalize_request(RelocalizeKind(), 0.5)
+        assert res.code == "no_frame" and res.outcome is None
+        ok, text = rt.relocalize(0.3)
+        assert not ok and "[no_frame]" in text and "will not be published" in text
+        rt.on_frame(frame_of(msg_of(image), 21))
+        time.sleep(1.0)
+        assert col.outcomes == [] and prov.queries == []  # nothing ran for them
+        stages: list[str] = []
+        res = rt.relocalize_request(RelocalizeKind(), 1.0, on_stage=stages.append)
+        assert res.code == "timeout" and stages[:2] == ["waiting_for_frame", "asking_prior"]
+        assert _wait_until(lambda: rt.stats.snapshot().get("relocalize_abandoned", 0) >= 1)
+        time.sleep(2.5)
+        assert col.outcomes == []  # the query finished, nobody waited: not published
+        # a cancelled caller: the same
+        flag = threading.Event()
+        threading.Timer(0.3, flag.set).start()
+        res = rt.relocalize_request(RelocalizeKind(), 30.0, cancelled=flag.is_set)
+        assert res.code == "cancelled"
+        time.sleep(3.0)
+        assert col.outcomes == []
+        # a caller that waits long enough gets it, published once, every stage seen
+        stages = []
+        res = rt.relocalize_request(RelocalizeKind(), 30.0, on_stage=stages.append)
+        assert res.code == "answered" and len(col.outcomes) == 1
+        assert col.outcomes[0] is res.outcome and res.outcome.trigger == "relocalize"
+        assert stages == ["waiting_for_frame", "asking_prior", "retrieving", "verifying"]
+    finally:
+        rt.stop()
+        prov.close()
+
+
+def test_fire_and_forget_and_continuous_mode_keep_publishing(pipeline, image):
+    """wait 0 (scheduled) is published; in continuous mode an abandoned relocalization goes
+    out as a continuous answer (trigger continuous: no pose reset)."""
+    prov = SlowPrior(1.0)
+    rt, col = make(pipeline, prov, mode="on_trigger", max_frame_age_s=10.0)
+    try:
+        rt.on_frame(frame_of(msg_of(image), 31))
+        assert rt.relocalize_request(RelocalizeKind(), 0.0).code == "scheduled"
+        assert _wait_until(lambda: len(col.outcomes) == 1)
+        assert col.outcomes[0].trigger == "relocalize"
+        rt.update(RuntimeConfig(mode="continuous", min_period_s=1000.0, max_frame_age_s=10.0))
+        rt.on_frame(frame_of(msg_of(image), 32))
+        res = rt.relocalize_request(RelocalizeKind(), 0.3)
+        assert res.code == "timeout"
+        assert _wait_until(lambda: len(col.outcomes) == 2)
+        assert col.outcomes[1].trigger == "continuous"
+    finally:
+        rt.stop()
+        prov.close()

@@ -174,7 +174,8 @@ def published_by_outputs(out, policy) -> list[tuple[str, object]]:
 
     frame = metric_frame("local_enu", "map", datum_lat=TRUTH[0], datum_lon=TRUTH[1])
     outputs = SimpleNamespace(fix=publisher("fix"), pose=publisher("pose"), frame=frame,
-                              _pose_log=Throttle(10.0))
+                              _pose_log=Throttle(10.0), _pose_kept=False,
+                              _latched=False)
     cfg = SimpleNamespace(frame_id="gps", pose_on="every_fix", publish_debug=False)
     Outputs.publish(outputs, out, cfg, policy)
     return sent

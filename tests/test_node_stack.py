@@ -41,9 +41,9 @@ def rgb(demo_data):
 @pytest.fixture(scope="module")
 def stack(demo_map, demo_data, tmp_path_factory, rgb):
     from chat_server import ChatServer
-    from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import PoseWithCovarianceStamped
     from sensor_msgs.msg import CompressedImage
+    from vlm_vpr_interfaces.msg import Candidates
 
     log = tmp_path_factory.mktemp("node_stack") / "node.log"
     with ChatServer("slow", lat=TRUTH[0] + 0.01, lon=TRUTH[1], delay_s=VLM_DELAY_S) as srv:
@@ -57,7 +57,7 @@ def stack(demo_map, demo_data, tmp_path_factory, rgb):
             state = {"srv": srv, "node": node, "client": client, "stamp": [time.time_ns()],
                      "pose": client.record(PoseWithCovarianceStamped, "pose"),
                      "debug": client.record(CompressedImage, f"{NODE}/debug_image/compressed"),
-                     "candidates": client.record(DiagnosticArray, f"{NODE}/candidates")}
+                     "candidates": client.record(Candidates, f"{NODE}/candidates")}
 
             def tick():  # the camera: a fresh frame each call
                 state["stamp"][0] += 1
@@ -193,16 +193,15 @@ def test_debug_image_for_every_processed_frame(stack, rgb, demo_data):
     assert green.sum() > exact.sum() + 500  # match lines, not the picture's own green
     diff = np.abs(right - ref[60:360].astype(int)).mean(axis=2)
     assert diff[~green].mean() < 12.0
-    status = candidates[-1][0].status
-    answer, rows = status[0], status[1:]
-    values = {kv.key: kv.value for kv in answer.values}
-    assert answer.name == f"{NODE.strip('/')}: answer" and values["ref_id"] == QUERY
-    assert values["status"] in ("STATUS_FIX", "STATUS_NO_FIX") and values["verification"] == \
-        "verified" and int(values["inliers"]) > 100 and float(values["p_correct"]) >= 0.95
-    assert answer.level == (b"\x00" if values["status"] == "STATUS_FIX" else b"\x01")
-    assert 1 <= len(rows) <= 10 and rows[0].message == QUERY
-    weights = [float(dict((kv.key, kv.value) for kv in r.values)["posterior"] or 0.0)
-               for r in rows]
+    # ~/candidates: the typed answer (vlm_vpr_interfaces/msg/Candidates) of the same frame
+    msg = candidates[-1][0]
+    answer = msg.answer
+    assert msg.header.stamp == answer.header.stamp == debug[-1][0].header.stamp
+    assert answer.reference_id == QUERY and answer.status in (-1, 0) and "verified" in \
+        answer.flags and answer.p_correct >= 0.95 and math.isfinite(answer.sigma_m)
+    rows = answer.candidates
+    assert 1 <= len(rows) <= 20 and rows[0].reference_id == QUERY and rows[0].inliers > 100
+    weights = [c.posterior if math.isfinite(c.posterior) else 0.0 for c in rows]
     assert all(0.0 <= w <= 1.0 for w in weights) and math.fsum(weights) <= 1.0 + 1e-6
     # publish_debug off at runtime: the next query publishes no debug image
     assert client.set_parameters(NODE, {"publish_debug": False})[0].successful
@@ -211,6 +210,15 @@ def test_debug_image_for_every_processed_frame(stack, rgb, demo_data):
     assert fut.result().success and client.wait_for(lambda: processed() > n_proc, 10.0)
     time.sleep(0.5)
     assert len(debug) == n_debug
+    # on again at runtime: every frame processed from then on has its picture (issue 29: 6 of 8)
+    assert client.set_parameters(NODE, {"publish_debug": True})[0].successful
+    n_debug, n_proc = len(debug), processed()
+    for _ in range(4):
+        [fut] = _call_all(client, "relocalize_no_prior", 1, tick)
+        assert fut.result().success
+    assert client.wait_for(lambda: processed() >= n_proc + 4 and len(debug) - n_debug ==
+                           processed() - n_proc, 15.0), (len(debug) - n_debug,
+                                                         processed() - n_proc)
 
 
 def _layout_topics(layout: dict) -> dict[str, str]:

@@ -67,7 +67,8 @@ ROSDEP_KEYS = {"numpy": "python3-numpy", "cv2": "python3-opencv", "yaml": "pytho
 #: ROS packages (declared by their own name)
 ROS_PACKAGES = {"rclpy", "rcl_interfaces", "lifecycle_msgs", "rosgraph_msgs", "std_msgs",
                 "sensor_msgs", "geometry_msgs", "diagnostic_msgs", "std_srvs",
-                "builtin_interfaces", "ament_index_python"}
+                "builtin_interfaces", "ament_index_python",
+                "nav_msgs", "vlm_vpr_interfaces"}  # robot prior (Odometry); typed relocalize
 
 
 def _imports(folder: Path) -> set[str]:

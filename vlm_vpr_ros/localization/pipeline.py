@@ -17,6 +17,7 @@ from vlm_vpr_ros.errors import MapError, VlmVprError
 from vlm_vpr_ros.localization.localizer import Localizer, LocalizerConfig
 from vlm_vpr_ros.localization.verification.stage import (VerificationConfig, Verifier,
                                                          widen_to_candidate_spread)
+from vlm_vpr_ros.localization.verification import prior_trust
 from vlm_vpr_ros.localization.verification.status import StatusPolicy, stamp_status
 from vlm_vpr_ros.maps.reference_map import ReferenceMap, descriptor_for_map
 from vlm_vpr_ros.priors.provider import PriorResult
@@ -48,6 +49,8 @@ def verify_and_stamp(hyp: Hypothesis, local: LocalFeatures | None, verifier: Ver
         model = localizer.error_model_for(hyp.prior) if hyp.prior is not None else None
         verifier.verify(hyp, local, model, trust_prior=policy.trusts(hyp),
                         level=policy.fix_min_p_correct, radii_calibrated=calibrated)
+        if prior_trust.applies(hyp, policy):  # a prior with its own sigma: weight + guard
+            prior_trust.weigh_trusted_prior(hyp, verifier.model, policy.fix_min_p_correct)
     elif "unverified" not in hyp.flags:
         hyp.flags = tuple(hyp.flags) + ("unverified",)
         hyp.verification = hyp.verification or "unverified: verification off"

@@ -45,32 +45,56 @@ class FixedPrior(PriorProvider):
 def read_prior_csv(path: str | os.PathLike[str]) -> dict[str, tuple[float, float]]:
     """Read a ``file, lat, lon`` CSV into {file: (lat, lon)}; blank/invalid rows and (0, 0)
     placeholders are skipped (counted in a warning); a file repeated with other coordinates is
-    a DataError."""
+    a DataError. (:func:`read_prior_table` also reads the optional ``sigma_m`` column.)"""
+    return {k: (v[0], v[1]) for k, v in read_prior_table(path).items()}
+
+
+def read_prior_table(path: str | os.PathLike[str]
+                     ) -> dict[str, tuple[float, float, float | None]]:
+    """``file, lat, lon[, sigma_m]`` CSV into {file: (lat, lon, sigma_km or None)}.
+
+    ``sigma_m`` (optional column): the prior's own 1-sigma error in metres, e.g. a robot's
+    filter estimate ("I was here, +-300 m"); it has the meaning of the ``topic`` prior's σ
+    (docs/priors.md), so a recorded robot prior may be trusted for fixes like an operator's
+    hint (``trust_operator_prior``). A blank cell: no σ of its own (the source's fitted error
+    model). A row whose ``sigma_m`` is not a positive finite number is treated as "no prior"
+    (counted in the same warning as a bad position): never a prior with a made-up σ."""
     items = []
     bad = 0
-    for n, row in read_rows(path, "priors CSV", ("file", "lat", "lon"))[1]:
+    cols, rows = read_rows(path, "priors CSV", ("file", "lat", "lon"))
+    has_sigma = "sigma_m" in cols
+    for n, row in rows:
         lat, lon = strict_float(row["lat"]), strict_float(row["lon"])  # no "3_9", no "nan"
+        sigma_km = None
+        text = (row.get("sigma_m") or "").strip() if has_sigma else ""
+        if text:
+            sigma_m = strict_float(text)
+            if sigma_m is None or not (math.isfinite(sigma_m) and sigma_m > 0):
+                bad += 1
+                continue
+            sigma_km = sigma_m / 1000.0
         if lat is None or lon is None:
             bad += 1
             continue
         if valid_latlon(lat, lon) and (lat, lon) != (0.0, 0.0):  # (0, 0): a placeholder
-            items.append((n, row["file"], (lat, lon)))
+            items.append((n, row["file"], (lat, lon, sigma_km)))
         else:
             bad += 1
     if bad:
-        log.warning("%s: %d row(s) without a valid lat/lon (or at 0, 0) are treated as 'no "
-                    "prior'", path, bad)
+        log.warning("%s: %d row(s) without a valid lat/lon (or at 0, 0) or sigma_m are "
+                    "treated as 'no prior'", path, bad)
     return unique_rows(items, path, "file")
 
 
 class RecordedPrior(PriorProvider):
-    """Priors recorded beforehand, looked up by the query's file name (``key``)."""
+    """Priors recorded beforehand, looked up by the query's file name (``key``); a
+    ``sigma_m`` column gives each its own σ (:func:`read_prior_table`)."""
 
     name = "recorded"
 
     def __init__(self, path: str) -> None:
         self.path = path
-        self.table = read_prior_csv(path)
+        self.table = read_prior_table(path)
         self._lookup = KeyedTable(self.table)
 
     def _compute(self, query: PriorQuery) -> PriorResult:
@@ -79,4 +103,4 @@ class RecordedPrior(PriorProvider):
         hit, why = self._lookup.find(query.key)
         if hit is None:
             return PriorResult.failure(self.name, why)
-        return PriorResult(Prior(hit[0], hit[1], self.name), self.name)
+        return PriorResult(Prior(hit[0], hit[1], self.name, hit[2]), self.name)

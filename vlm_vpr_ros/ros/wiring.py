@@ -25,7 +25,10 @@ from msg_adapters.image import encoded_bytes, message_to_rgb, stamp_ns
 from vlm_vpr_ros.errors import ConfigError, MapError
 from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
 from vlm_vpr_ros.priors import create_prior_provider
+from vlm_vpr_ros.ros.malloc import trim_malloc
 from vlm_vpr_ros.ros.publishers import Outputs, fix_policy
+from vlm_vpr_ros.ros.relocalize_server import TypedRelocalize
+from vlm_vpr_ros.ros.robot_prior import RobotPriorInput
 from vlm_vpr_ros.ros.parameters import _Parameters
 from vlm_vpr_ros.runtime.params import NodeConfig
 from vlm_vpr_ros.runtime.stats import RuntimeStats, Throttle
@@ -92,10 +95,15 @@ class _Wiring(_Parameters):
             verification=cfg.verification_config(), status=cfg.status_policy())
         self._provider = create_prior_provider(cfg.prior_provider, cfg.prior)
         self.policy = fix_policy(cfg)
-        self._flag_log = Throttle(10.0)
-        self._stats = RuntimeStats(self._provider.name, cfg.mode)
         m = self.pipeline.map
         self.outputs = Outputs(self, make_publisher, cfg, m.path, m.manifest)
+        self._robot_prior = None
+        if cfg.prior_topic:  # the robot's own estimate, the provider as its fallback
+            self._robot_prior = RobotPriorInput(self, cfg, self._provider, self.outputs.frame)
+            self._provider = self._robot_prior.provider
+        self._flag_log = Throttle(10.0)
+        self._trim_log = Throttle(60.0)
+        self._stats = RuntimeStats(self._provider.name, cfg.mode)
         if cfg.publish_debug:
             self.outputs.ensure_debug()
         # reentrant + a deep request queue: every caller of a burst waits for the shared
@@ -108,6 +116,7 @@ class _Wiring(_Parameters):
         self._own_services.append(self.create_service(
             Trigger, "map_reload", self._on_map_reload,
             callback_group=MutuallyExclusiveCallbackGroup()))
+        self._typed = TypedRelocalize(self)  # relocalize_typed service + relocalize action
         self._diag_timer = self.create_timer(cfg.diagnostics_period_s, self._publish_diagnostics,
                                              callback_group=MutuallyExclusiveCallbackGroup())
         self._images_group = MutuallyExclusiveCallbackGroup()
@@ -125,6 +134,12 @@ class _Wiring(_Parameters):
         for srv in getattr(self, "_own_services", []):
             self.destroy_service(srv)
         self._own_services = []
+        if getattr(self, "_typed", None) is not None:
+            self._typed.destroy()
+            self._typed = None
+        if getattr(self, "_robot_prior", None) is not None:
+            self._robot_prior.destroy()
+            self._robot_prior = None
         if self.outputs is not None:
             self.outputs.destroy_debug()
         if self._provider is not None:
@@ -143,7 +158,9 @@ class _Wiring(_Parameters):
         # settings tuned while inactive (lifecycle) reach the new worker too
         self.runtime.update(localizer=cfg.localizer_config(), status=cfg.status_policy(),
                             verify_top_k=cfg.verify_top_k)
-        self.runtime.keep_images = cfg.publish_debug
+        # the decoded frame stays with its outcome until published: a publish_debug turned on
+        # at run time draws the very next answer too
+        self.runtime.keep_images = True
         topics = []
         try:
             for enabled, msg_type, topic in ((cfg.subscribe_raw, Image, "image"),
@@ -187,7 +204,6 @@ class _Wiring(_Parameters):
         if self.runtime is not None:
             self.runtime.update(runtime_config(cfg), cfg.localizer_config(),
                                 cfg.status_policy(), cfg.verify_top_k)
-            self.runtime.keep_images = cfg.publish_debug
         if self._stats is not None:
             self._stats.mode = cfg.mode
         if cfg.publish_debug and self.outputs is not None:
@@ -238,10 +254,11 @@ class _Wiring(_Parameters):
             return
         cfg, hyp = self.cfg, out.hypothesis
         self.outputs.publish(out, cfg, self.policy)
-        if hyp is not None:
+        if hyp is not None:  # one level per kind of answer; a throttle only drops lines
             summary = outcome_summary(out, 0.0)[1]  # "fix for frame ..." in continuous mode
-            if hyp.flagged and self._flag_log.ready():
-                self.get_logger().warning(summary)
+            if hyp.flagged:
+                if self._flag_log.ready():
+                    self.get_logger().warning(summary)
             elif out.trigger == "relocalize":
                 self.get_logger().info(summary)
             else:
@@ -253,6 +270,8 @@ class _Wiring(_Parameters):
     def _publish_diagnostics(self) -> None:
         if not self._active or self.pipeline is None or self.outputs is None:
             return
+        if self._trim_log.ready():  # freed image and feature buffers back to the OS
+            trim_malloc()
         runtime = self.runtime
         level, message, values = self._stats.report(busy=bool(runtime and runtime.busy))
         pipe = runtime.pipeline if runtime is not None else self.pipeline
@@ -262,5 +281,9 @@ class _Wiring(_Parameters):
                   + pipe.verifier.calibration_source,
                   "map_references": pipe.map.n_references,
                   "map_generation": pipe.map.manifest.get("generation", 0), **values}
+        robot = getattr(self, "_robot_prior", None)
+        if robot is not None:  # the robot's own estimate as the prior (prior_topic)
+            values["prior_topic_used"] = robot.provider.used
+            values["prior_topic_rejected"] = robot.provider.rejected
         self.outputs.publish_diagnostics(self.get_clock().now().nanoseconds, level, message,
                                          values, self.cfg.hardware_id)

@@ -24,12 +24,15 @@ from typing import Any, Mapping, Sequence
 import cv2
 import numpy as np
 
-from vlm_vpr_ros.errors import VlmVprError
+from vlm_vpr_ros.errors import ImageDecodeError, VlmVprError
 from vlm_vpr_ros.files.images import encode_jpeg, load_image
 from vlm_vpr_ros.maps.map_images import images_folder
 
 log = logging.getLogger(__name__)
 PANEL_HEIGHT = 360  # px: both images are scaled to this height
+PANEL_MAX_WIDTH = 1280  # px: ... and at most this wide (a 10000x10 strip stays encodable)
+#: JPEG's largest side (baseline 16-bit sizes); a larger picture is never handed to the encoder
+JPEG_MAX_SIDE = 65500
 CAPTION_HEIGHT = 48
 MAX_CANDIDATES_LISTED = 10
 _FONT = cv2.FONT_HERSHEY_SIMPLEX
@@ -69,14 +72,29 @@ class ReferenceImages:
         return found
 
 
-def _scaled(rgb: np.ndarray, height: int = PANEL_HEIGHT) -> tuple[np.ndarray, float]:
-    s = height / max(1, rgb.shape[0])
+def _scaled(rgb: np.ndarray, height: int = PANEL_HEIGHT,
+            max_width: int = PANEL_MAX_WIDTH) -> tuple[np.ndarray, float]:
+    """``rgb`` scaled to ``height`` (at most ``max_width`` wide: then padded to ``height``)
+    and the scale (panel px per original px)."""
+    s = min(height / max(1, rgb.shape[0]), max_width / max(1, rgb.shape[1]))
     w = max(1, int(round(rgb.shape[1] * s)))
-    return cv2.resize(rgb, (w, height), interpolation=cv2.INTER_AREA), s
+    h = max(1, min(height, int(round(rgb.shape[0] * s))))
+    small = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
+    if h == height:
+        return small, s
+    out = np.zeros((height, w, 3), np.uint8)
+    out[:h] = small
+    return out, s
 
 
 def _text(img: np.ndarray, text: str, org: tuple[int, int], scale: float = 0.5) -> None:
-    cv2.putText(img, text, org, _FONT, scale, (0, 0, 0), 3, cv2.LINE_AA)
+    """``text`` drawn once, white on a dark box (legible on any picture)."""
+    (w, h), base = cv2.getTextSize(text, _FONT, scale, 1)
+    x, y = org
+    x0, y0 = max(0, x - 2), max(0, y - h - 3)
+    x1, y1 = min(img.shape[1], x + w + 2), min(img.shape[0], y + base + 2)
+    if x1 > x0 and y1 > y0:
+        img[y0:y1, x0:x1] = (img[y0:y1, x0:x1] // 4)
     cv2.putText(img, text, org, _FONT, scale, (255, 255, 255), 1, cv2.LINE_AA)
 
 
@@ -137,6 +155,11 @@ def match_pixels(fractions: np.ndarray | None, query_shape: tuple[int, ...],
 
 
 def jpeg(rgb: np.ndarray, quality: int = 85) -> bytes:
+    """JPEG bytes of the picture; ImageDecodeError (one line, no OpenCV message) when JPEG
+    cannot hold it."""
+    if max(rgb.shape[:2]) > JPEG_MAX_SIDE or min(rgb.shape[:2]) < 1:
+        raise ImageDecodeError(f"JPEG encoding failed: a {rgb.shape[1]}x{rgb.shape[0]} "
+                               f"picture (JPEG holds at most {JPEG_MAX_SIDE} px a side)")
     return encode_jpeg(rgb, quality)
 
 

@@ -131,6 +131,29 @@ class MetricFrame:
         c, s = math.cos(self.yaw), math.sin(self.yaw)
         return c * e + s * n, -s * e + c * n, float(u)
 
+    def unproject(self, x: float, y: float) -> tuple[float, float]:
+        """(lat, lon) of a point (x, y) of this frame: the inverse of :meth:`project` (a
+        robot's own pose as a prior, :mod:`vlm_vpr_ros.priors.robot`). UTM needs a fixed
+        zone (``utm_zone`` 1-60; the hemisphere is the datum's, north without one):
+        ConfigError otherwise, or for non-finite coordinates."""
+        if not (math.isfinite(x) and math.isfinite(y)):
+            raise ConfigError("no position for non-finite metric coordinates")
+        if self.kind == "utm":
+            if not self.zone:
+                raise ConfigError("a UTM position needs a fixed zone to be converted (set "
+                                  "utm_zone 1-60, the zone of navsat_transform's datum)")
+            north = self.datum is None or not math.isfinite(self.datum[0]) or self.datum[0] >= 0
+            lon, lat = self._transformer((self.zone, north)).transform(
+                x, y, direction="INVERSE")
+        else:
+            c, s = math.cos(self.yaw), math.sin(self.yaw)  # inverse of R = [[c, s], [-s, c]]
+            e, n = c * x - s * y, s * x + c * y
+            lon, lat, _ = self._transformer("enu").transform(e, n, 0.0, direction="INVERSE")
+        lat, lon = float(lat), float(lon)
+        if not (math.isfinite(lat) and math.isfinite(lon) and -90 <= lat <= 90):
+            raise ConfigError(f"({x:.1f}, {y:.1f}) in {self.frame_id} has no WGS-84 position")
+        return lat, ((lon + 180.0) % 360.0) - 180.0
+
     def pose(self, lat: float, lon: float, alt: float,
              enu_covariance: tuple[float, ...]) -> PoseFields:
         """The pose of a fix: ``enu_covariance`` is the fix's 3x3 ENU covariance (row-major,

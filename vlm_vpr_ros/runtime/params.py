@@ -36,6 +36,8 @@ DURABILITY = ("volatile", "transient_local")
 POSE_FRAMES = ("utm", "local_enu", "none")
 POSE_ON = ("relocalize", "every_fix")
 NESTED = ("prior", "descriptor_options", "feature_options", "matcher_options")
+TOPIC_KINDS = ("navsat", "pose", "odometry")
+PRIOR_ORDERS = ("topic_first", "provider_first")
 #: parameters every rclpy node has
 ROS_STANDARD = frozenset({"use_sim_time", "start_type_description_service"})
 
@@ -73,6 +75,22 @@ class NodeConfig:
                                      "settings under prior.*")
     prior_timeout_s: float = _p(30.0, "longest wait for a prior; then a flagged global fix",
                                 0.001, 3600.0, writable=True)
+    # the robot's own estimate as a prior (vlm_vpr_ros/priors/robot.py, docs/node.md)
+    prior_topic: str = _p("", "the robot's own estimate as a prior: a topic with a NavSatFix, "
+                              "PoseWithCovarianceStamped or Odometry (prior_topic_type; '' = "
+                              "off); sigma from its covariance, grown with age")
+    prior_topic_type: str = _p("navsat", "message type of prior_topic: navsat, pose or "
+                                         "odometry (pose/odometry: in the pose_frame the node "
+                                         "publishes, utm with a fixed utm_zone or local_enu)",
+                               choices=TOPIC_KINDS)
+    prior_topic_growth_m_per_s: float = _p(1.0, "prior_topic: sigma grows this many metres per "
+                                                "second of the estimate's age", 0.0, 1000.0)
+    prior_topic_max_age_s: float = _p(120.0, "prior_topic: estimates older than this (s, node "
+                                             "clock) are stale: not used", 0.001, 86400.0)
+    prior_order: str = _p("topic_first", "with prior_topic: topic_first (the robot's estimate "
+                                         "while fresh, else prior_provider) or provider_first "
+                                         "(prior_provider, the robot's estimate when it gives "
+                                         "none)", choices=PRIOR_ORDERS)
     top_p: int = _p(50, "references retrieved before fusion with the prior", 1, 100000,
                     writable=True)
     fusion: str = _p("posterior", "posterior: visual + prior likelihood over the submaps in the "
@@ -223,7 +241,7 @@ def refusal_reason(name: str) -> str:
     if head in _MAP_SETTINGS:
         how = ("the map and its descriptor are loaded at start (lifecycle: configure); to use "
                f"what changed inside map_dir call the map_reload service, otherwise {restart}")
-    elif head in ("prior_provider", "prior"):
+    elif head in ("prior_provider", "prior") or head.startswith("prior_"):
         how = f"the prior provider is created at start (lifecycle: configure); {restart}"
     else:
         how = f"topics, QoS, frames and timers are set up at start; {restart}"
@@ -299,6 +317,9 @@ def validate(cfg: NodeConfig, check_paths: bool = True) -> None:
     _require(math.isfinite(cfg.altitude_m), "parameter 'altitude_m' must be finite")
     _require(1 <= cfg.qos_depth <= 10, f"parameter 'qos_depth' must be in 1..10, "
                                        f"got {cfg.qos_depth}")
+    _require(cfg.prior_topic_type not in ("pose", "odometry") or not cfg.prior_topic
+             or cfg.pose_frame != "none", "prior_topic_type pose/odometry needs pose_frame "
+             "utm or local_enu (the frame its positions are in)")
     _require(cfg.subscribe_raw or cfg.subscribe_compressed,
              "subscribe_raw and subscribe_compressed are both false: nothing to localize")
     for name, bound in (("datum_lat", 90.0), ("datum_lon", 180.0)):

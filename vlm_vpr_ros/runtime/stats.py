@@ -15,7 +15,8 @@ RECENT_ERROR_S = 10.0
 NO_FRAMES_WARN_S = 5.0
 _COUNTERS = ("frames_received", "frames_processed", "frames_dropped", "decode_errors",
              "queries", "fixes", "flagged_fixes", "query_errors", "relocalize_requests",
-             "map_reloads", "map_reload_failures", "status_fix", "verified")
+             "map_reloads", "map_reload_failures", "status_fix", "verified",
+             "relocalize_abandoned")
 
 
 class Throttle:

@@ -26,7 +26,7 @@ import dataclasses
 import logging
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Callable
 
 import numpy as np
@@ -36,11 +36,12 @@ from vlm_vpr_ros.localization.localizer import LocalizerConfig
 from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
 from vlm_vpr_ros.priors.provider import PriorProvider, PriorQuery, PriorResult
 from vlm_vpr_ros.runtime import debug_view
-from vlm_vpr_ros.runtime.relocalize import (RelocalizeKind, RelocalizeTicket,
+from vlm_vpr_ros.runtime.outcome import Frame, QueryOutcome
+from vlm_vpr_ros.runtime.relocalize import (RelocalizeKind, RelocalizeResult,
+                                            RelocalizeTicket, await_answer, no_answer_text,
                                             outcome_summary)
 from vlm_vpr_ros.redact import redact
 from vlm_vpr_ros.runtime.stats import RuntimeStats, Throttle
-from vlm_vpr_ros.types import Hypothesis
 
 log = logging.getLogger(__name__)
 MODES = ("continuous", "on_trigger")
@@ -82,37 +83,6 @@ class RuntimeConfig:
                               "max_frame_age_s must be > 0")
 
 
-@dataclass
-class Frame:
-    """A received, not yet decoded image message."""
-
-    msg: Any
-    stamp_ns: int
-    frame_id: str
-    received: float = field(default_factory=time.monotonic)
-    seq: int = 0  # arrival number (set by QueryRuntime.on_frame)
-
-    @property
-    def key(self) -> str:
-        """Lookup key handed to the prior provider: the stamp as ``sec.nanosec``."""
-        return f"{self.stamp_ns // 1_000_000_000}.{self.stamp_ns % 1_000_000_000:09d}"
-
-
-@dataclass
-class QueryOutcome:
-    frame: Frame
-    trigger: str  # "continuous" or "relocalize"
-    hypothesis: Hypothesis | None = None
-    error: str = ""  # why there is no hypothesis
-    started: float = 0.0
-    finished: float = 0.0
-    timings_ms: dict[str, float] = field(default_factory=dict)
-    rgb: np.ndarray | None = field(default=None, repr=False)  # kept when keep_images is set
-    #: the answer's inlier matches, (n, 4) fractions of the query and reference images
-    #: (debug_view.winner_matches; only with keep_images and a verified answer)
-    matches: np.ndarray | None = field(default=None, repr=False)
-
-
 class QueryRuntime:
     """Owns the worker thread; the node feeds frames and publishes outcomes."""
 
@@ -140,6 +110,7 @@ class QueryRuntime:
         #: latest frame join it while its frame is fresh enough for them
         self._inflight: tuple[Frame, bool, dict[RelocalizeKind, RelocalizeTicket]] | None = None
         self._last_start = -float("inf")
+        self._stage_now = "asking_prior"
         self._stop = False
         self.busy = False
         self._decode_log = Throttle(5.0)
@@ -158,16 +129,34 @@ class QueryRuntime:
             self.stats.frame_received(dropped)
             self._cond.notify_all()
 
-    def request_relocalize(self, kind: RelocalizeKind = RelocalizeKind()) -> RelocalizeTicket:
+    def request_relocalize(self, kind: RelocalizeKind = RelocalizeKind(),
+                           wait: bool = False) -> RelocalizeTicket:
         """Force a query (ignoring ``min_period_s``, in both modes) on the frame ``kind`` asks
-        for; requests of one kind made while one is pending share it."""
+        for; requests of one kind made while one is pending share it. ``wait``: the caller
+        attaches as a waiter (:func:`~vlm_vpr_ros.runtime.relocalize.await_answer`); else the
+        request is fire-and-forget and its answer is published whoever waits."""
         with self._cond:
             self.stats.count("relocalize_requests")
             ticket = self._tickets.get(kind) or self._join_inflight(kind)
             if ticket is None:
                 ticket = self._tickets[kind] = RelocalizeTicket(kind, self._seq)
+            ticket.attach() if wait else ticket.detach()
             self._cond.notify_all()
             return ticket
+
+    def _give_up(self, ticket: RelocalizeTicket) -> None:
+        """A waiter left ``ticket``: drop it while still pending if nobody wants it now."""
+        with self._cond:
+            if self._tickets.get(ticket.kind) is ticket and ticket.abandoned:
+                del self._tickets[ticket.kind]
+                self.stats.count("relocalize_abandoned")
+
+    def _stage(self, name: str) -> None:
+        """The running query reached stage ``name``: its callers hear it (action feedback)."""
+        with self._cond:
+            self._stage_now = name
+            for ticket in (self._inflight[2].values() if self._inflight else ()):
+                ticket.stage(name)
 
     def _join_inflight(self, kind: RelocalizeKind) -> RelocalizeTicket | None:
         """The running query's ticket for a ``latest`` request it can answer (its frame was
@@ -182,7 +171,9 @@ class QueryRuntime:
         if use_prior != kind.use_prior or not ticket.accepts(frame, self._last_start,
                                                              self.config.max_frame_age_s):
             return None
-        return served.setdefault(kind, ticket)
+        ticket = served.setdefault(kind, ticket)
+        ticket.stage(self._stage_now)
+        return ticket
 
     def update(self, config: RuntimeConfig | None = None,
                localizer: LocalizerConfig | None = None, status: Any = None,
@@ -224,25 +215,33 @@ class QueryRuntime:
 
     def relocalize(self, wait_s: float, fix_topic: str = "fix",
                    kind: RelocalizeKind = RelocalizeKind()) -> tuple[bool, str]:
-        """Answer one relocalize call: (success, sentence) within ``wait_s`` at most.
+        """Answer one relocalize Trigger call: (success, sentence) within ``wait_s`` at most
+        (:meth:`relocalize_request`). ``wait_s`` 0: not waited, never success."""
+        res = self.relocalize_request(kind, wait_s)
+        if res.outcome is None:
+            return False, no_answer_text(res, fix_topic, kind.label)
+        return outcome_summary(res.outcome, res.waited_s, fix_topic)
 
-        Every call joins the pending request of its kind (concurrent calls share one query)
-        and waits for that shared outcome. Each waiting call holds an executor thread, so at
-        most ``max_waiters`` wait at once; a call beyond that is answered at once that the
-        shared relocalization is scheduled (never refused)."""
-        t0 = time.monotonic()
-        ticket = self.request_relocalize(kind)
+    def relocalize_request(self, kind: RelocalizeKind, wait_s: float,
+                           cancelled: Callable[[], bool] | None = None,
+                           on_stage: Callable[[str], None] | None = None) -> RelocalizeResult:
+        """One relocalize caller (Trigger, typed service, action): joins the pending request
+        of its kind (concurrent calls share one query) and waits for that shared outcome at
+        most ``wait_s`` (docs/node.md "Relocalize rules"). ``wait_s`` <= 0: fire and forget
+        (code ``scheduled``). Each waiting call holds an executor thread, so at most
+        ``max_waiters`` wait at once; a call beyond that is told the shared relocalization is
+        scheduled (code ``busy``; never refused)."""
         if wait_s <= 0:
-            return True, (f"relocalization scheduled ({kind.label}); the fix will be "
-                          f"published on {fix_topic}")
+            self.request_relocalize(kind)
+            return RelocalizeResult("scheduled")
         if not self._waiters.acquire(blocking=False):
-            return False, (f"relocalization scheduled ({kind.label}), shared with the callers "
-                           f"already waiting for it; the fix will be published on {fix_topic}")
+            self.request_relocalize(kind)
+            return RelocalizeResult("busy")
         try:
-            outcome = ticket.wait(wait_s)
+            ticket = self.request_relocalize(kind, wait=True)
+            return await_answer(ticket, wait_s, cancelled, on_stage, self._give_up)
         finally:
             self._waiters.release()
-        return outcome_summary(outcome, time.monotonic() - t0, fix_topic)
 
     # -- lifecycle -----
     def start(self) -> None:
@@ -268,6 +267,10 @@ class QueryRuntime:
         """The frame for the oldest pending request and every pending request of the same
         prior setting that this frame also answers; None: wait for a frame (caller holds
         the lock)."""
+        for gone in [k for k, t in self._tickets.items() if t.abandoned]:
+            del self._tickets[gone]
+        if not self._tickets:
+            return None
         age = self.config.max_frame_age_s
         first = min(self._tickets.values(), key=lambda t: t.requested)
         frame = None
@@ -320,6 +323,9 @@ class QueryRuntime:
             with self._cond:
                 self._last_start = self._clock()
                 self._inflight = (frame, use_prior, {t.kind: t for t in tickets})
+                self._stage_now = "asking_prior" if use_prior else "retrieving"
+                for t in tickets:
+                    t.stage(self._stage_now)
             self.busy = True
             outcome = QueryOutcome(frame, "relocalize" if tickets else "continuous")
             try:
@@ -331,8 +337,16 @@ class QueryRuntime:
             self._last_used = frame
             with self._cond:  # requests from now on wait for the next query
                 tickets, self._inflight = list(self._inflight[2].values()), None
-            if tickets:
-                outcome.trigger = "relocalize"
+            live = [t for t in tickets if t.claim()]  # nobody waits for the others any more
+            if tickets and not live:
+                self.stats.count("relocalize_abandoned")
+                if self.config.mode != "continuous":  # an answer nobody asked for now
+                    self.busy = False
+                    for ticket in tickets:
+                        ticket.finish(None)
+                    continue
+            outcome.trigger = "relocalize" if live else "continuous"
+            tickets = live
             if self._stop:  # shutting down: the query was cut short, publish nothing
                 self.busy = False
                 for ticket in tickets:
@@ -387,8 +401,11 @@ class QueryRuntime:
         t2 = time.monotonic()
         prior = self._await_prior(future, t1) if future is not None else None
         t3 = time.monotonic()
+        self._stage("retrieving")
         try:
-            hyp = pipe.localize_descriptor(query.desc, prior, query.local)
+            hyp = pipe.localizer.localize(query.desc, prior)
+            self._stage("verifying")
+            hyp = pipe.finish(hyp, query.local)  # = pipe.localize_descriptor, in two stages
         except VlmVprError as exc:  # e.g. a map file truncated after start (maps/store.py)
             out.error = f"localization failed: {exc}"
             return

@@ -1,0 +1,126 @@
+"""The typed relocalization interfaces of the node (``vlm_vpr_interfaces``), ROS edge only.
+
+* service ``relocalize_typed`` (``vlm_vpr_interfaces/srv/Relocalize``): the options of the
+  three Trigger services as fields (``next_frame``, ``no_prior``), a per-call ``timeout_s``
+  (0: the node's ``relocalize_wait_s``), the answer typed (``vlm_vpr_interfaces/msg/Answer``:
+  outcome, status, position, sigma, protection level, ``p_correct``, flags, the frame's stamp,
+  the reason when there is no fix);
+* action ``relocalize`` (``vlm_vpr_interfaces/action/Relocalize``): the same with feedback by
+  stage (waiting for a frame, asking the prior, retrieving, verifying) and cancel; a goal
+  whose ``timeout_s`` is not a positive finite number is rejected (WARN naming the reason: the
+  action protocol carries none).
+
+The waiting and the rules (who still waits, abandoned answers never published) are the pure
+runtime's (:meth:`vlm_vpr_ros.runtime.worker.QueryRuntime.relocalize_request`); messages are
+built by :mod:`msg_adapters.answer`. The Trigger services stay (the compatibility path).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Any
+
+from rclpy.action import ActionServer, CancelResponse, GoalResponse
+from rclpy.callback_groups import ReentrantCallbackGroup
+from vlm_vpr_interfaces.action import Relocalize as RelocalizeAction
+from vlm_vpr_interfaces.srv import Relocalize as RelocalizeSrv
+
+from msg_adapters.answer import answer_msg
+from msg_adapters.navsat import fix_fields
+from vlm_vpr_ros.runtime.relocalize import (STAGES, RelocalizeKind, RelocalizeResult,
+                                            no_answer_text)
+
+TYPED_SERVICE = "relocalize_typed"
+ACTION = "relocalize"
+
+
+def timeout_problem(timeout_s: float, allow_default: bool) -> str:
+    """Why a requested timeout is refused ("" when fine); 0 means the node's default only
+    where ``allow_default`` (the service)."""
+    t = float(timeout_s)
+    if allow_default and t == 0.0:
+        return ""
+    if not math.isfinite(t) or t <= 0:
+        return f"timeout_s must be a positive finite number of seconds, got {t}"
+    return ""
+
+
+def kind_of(request: Any) -> RelocalizeKind:
+    return RelocalizeKind("next" if request.next_frame else "latest", not request.no_prior)
+
+
+class TypedRelocalize:
+    """The typed service and the action of one node (made at configure, gone at cleanup)."""
+
+    def __init__(self, node: Any) -> None:
+        self.node = node
+        group = ReentrantCallbackGroup()
+        self.service = node.create_service(RelocalizeSrv, TYPED_SERVICE, self._on_service,
+                                           callback_group=group)
+        self.action = ActionServer(node, RelocalizeAction, ACTION, self._execute,
+                                   goal_callback=self._on_goal,
+                                   cancel_callback=lambda _goal: CancelResponse.ACCEPT,
+                                   callback_group=group)
+
+    def destroy(self) -> None:
+        self.node.destroy_service(self.service)
+        self.action.destroy()
+
+    # -- helpers ----
+    def _answer(self, res: RelocalizeResult, message: str = "") -> Any:
+        node = self.node
+        fields = None
+        out = res.outcome
+        if out is not None and out.hypothesis is not None:
+            fields = fix_fields(out.hypothesis, node.policy)
+        frame_id = (node.cfg.frame_id or out.frame.frame_id) if out is not None else ""
+        if not message and out is None:
+            message = no_answer_text(res, node.resolve_topic_name("fix"))
+        return answer_msg(res, fields, frame_id, message)
+
+    def _run(self, request: Any, wait_s: float, cancelled=None, on_stage=None
+             ) -> RelocalizeResult:
+        runtime = self.node.runtime
+        if runtime is None or not self.node._active:
+            return RelocalizeResult("not_active")
+        return runtime.relocalize_request(kind_of(request), wait_s, cancelled, on_stage)
+
+    # -- service ----
+    def _on_service(self, request: Any, response: Any) -> Any:
+        why = timeout_problem(request.timeout_s, allow_default=True)
+        if why:
+            self.node.get_logger().warning(f"{TYPED_SERVICE}: request rejected: {why}")
+            response.answer = self._answer(RelocalizeResult("rejected"), why)
+            return response
+        wait_s = float(request.timeout_s) or self.node.cfg.relocalize_wait_s
+        response.answer = self._answer(self._run(request, wait_s))
+        return response
+
+    # -- action ----
+    def _on_goal(self, goal: Any) -> GoalResponse:
+        why = timeout_problem(goal.timeout_s, allow_default=False)
+        if why:
+            self.node.get_logger().warning(f"{ACTION} action: goal rejected: {why}")
+            return GoalResponse.REJECT
+        return GoalResponse.ACCEPT
+
+    def _execute(self, goal_handle: Any) -> Any:
+        t0 = time.monotonic()
+        request = goal_handle.request
+
+        def on_stage(name: str) -> None:
+            fb = RelocalizeAction.Feedback(stage=STAGES.index(name), stage_name=name,
+                                           elapsed_s=time.monotonic() - t0)
+            goal_handle.publish_feedback(fb)
+
+        res = self._run(request, float(request.timeout_s),
+                        cancelled=lambda: goal_handle.is_cancel_requested, on_stage=on_stage)
+        result = RelocalizeAction.Result(answer=self._answer(res))
+        if res.code == "cancelled" and goal_handle.is_cancel_requested:
+            goal_handle.canceled()
+        elif res.code in ("answered", "failed"):
+            goal_handle.succeed()
+        else:
+            goal_handle.abort()
+        return result
