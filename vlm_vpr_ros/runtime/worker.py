@@ -4,11 +4,10 @@ Threads: the image callback only calls :meth:`QueryRuntime.on_frame`, which stor
 undecoded message in a one-frame slot (a newer frame replaces an unused one: *dropped by design*,
 counted). One worker thread takes frames when a query is due — every ``min_period_s`` in
 ``continuous`` mode, on :meth:`QueryRuntime.request_relocalize` in both modes (kinds of requests:
-:mod:`vlm_vpr_ros.runtime.relocalize`) — decodes the
-frame, starts the prior request (asynchronous, see :mod:`vlm_vpr_ros.priors.provider`), computes
-the descriptor meanwhile, waits for the prior at most ``prior_timeout_s``, localizes (flagged
-global retrieval when the prior failed) and hands a :class:`QueryOutcome` to ``on_outcome``. Nothing
-here queues more than one frame and one pending relocalization per kind.
+:mod:`vlm_vpr_ros.runtime.relocalize`) — decodes the frame, starts the prior request
+(asynchronous, see :mod:`vlm_vpr_ros.priors.provider`), computes the descriptor meanwhile, waits
+for the prior at most ``prior_timeout_s``, localizes (flagged global retrieval when the prior
+failed) and hands a :class:`QueryOutcome` to ``on_outcome``. Nothing here queues more than one frame and one pending relocalization per kind.
 
 Runtime tuning: :meth:`QueryRuntime.update` swaps the rate/timeout settings and the localizer's
 per-query settings (``top_p`` ...); the next query uses them, a running query keeps its own.
