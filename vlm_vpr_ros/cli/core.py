@@ -107,6 +107,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--ground-truth", required=True, metavar="CSV",
                    help="file, lat, lon (or IMG_ID, LAT, LON)")
     p.add_argument("--json", action="store_true", help="print only a JSON object on stdout")
+    p.add_argument("--geojson", metavar="OUT.geojson", default=None,
+                   help="also write the results as GeoJSON (RFC 7946: [lon, lat] points, "
+                        "with truth and error_km) for a GIS")
     p.set_defaults(func=cmd_evaluate)
 
     p = sub.add_parser("descriptors", help="list the descriptor presets")
@@ -359,6 +362,13 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from vlm_vpr_ros.evaluation.metrics import evaluate_results_csv, format_table
 
     summary, extra = evaluate_results_csv(args.results, args.ground_truth)
+    if args.geojson:
+        from vlm_vpr_ros.evaluation.metrics import read_ground_truth
+        from vlm_vpr_ros.files.geojson import write_results_geojson
+
+        n = write_results_geojson(args.results, args.geojson,
+                                  read_ground_truth(args.ground_truth))
+        print(f"GeoJSON: {args.geojson} ({n} points)", file=sys.stderr)
     if args.json:
         json.dump({**summary, "recall_pct": extra["recall_pct"], "fixes": extra["fixes"],
                    "coverage68_pct": round(extra["coverage_pct"], 2),
