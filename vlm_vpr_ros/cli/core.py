@@ -69,7 +69,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "--fusion posterior; --fusion paper: the paper's nearest "
                                    "submap + re-rank by distance to the prior). "
                                    "docs/fusion.md.")
-    p.add_argument("--map", required=True, metavar="MAP")
+    p.add_argument("--map", required=True, metavar="MAP", help="map folder to localize on")
     p.add_argument("--images", metavar="DIR", help="folder of query images (optional with "
                    "--query-descriptors: then only given to a prior that needs pixels)")
     p.add_argument("--query-descriptors", metavar="Q.npy", default=None,
@@ -103,7 +103,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_localize)
 
     p = sub.add_parser("evaluate", help="accuracy of a results CSV against ground truth")
-    p.add_argument("--results", required=True, metavar="RESULTS.csv")
+    p.add_argument("--results", required=True, metavar="RESULTS.csv",
+                   help="results CSV written by 'vlm-vpr localize'")
     p.add_argument("--ground-truth", required=True, metavar="CSV",
                    help="file, lat, lon (or IMG_ID, LAT, LON)")
     p.add_argument("--json", action="store_true", help="print only a JSON object on stdout")
