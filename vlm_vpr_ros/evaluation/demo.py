@@ -298,8 +298,8 @@ def run_demo(out: str | Path, with_bag: bool = True, places: int | None = None) 
             files, qdesc, queries, look / "results", look_verifier, qlocal)
     tied, answered = twin_ties(look_map, qdesc)
     print(f"      VPR cannot tell a place from its look-alike (the same image): for {tied} of "
-          f"{answered} queries the best match's twin is at the bit-identical distance; the "
-          "search\n      breaks the tie by map order (submap, then row)", flush=True)
+          f"{answered} queries\n      the best match's twin is at the bit-identical distance; "
+          "the search breaks the tie by map order\n      (submap, then row)", flush=True)
     if tied != answered:
         log.warning("look-alike step: %d of %d queries without an exact twin tie; the VPR-only "
                     "row may differ between machines", answered - tied, answered)
