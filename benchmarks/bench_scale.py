@@ -42,7 +42,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 MP16 = REPO.parent / "shared" / "data" / "mp16_coords"
 CHUNK = 100_000
-EARTH_KM = 6371.0088
+from vlm_vpr_ros.geodesy import EARTH_RADIUS_KM as EARTH_KM  # noqa: E402 (after sys.path)
 
 
 # -- data --------------------------------------------------------------------------------------

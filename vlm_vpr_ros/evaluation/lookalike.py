@@ -35,7 +35,7 @@ import cv2
 import numpy as np
 
 from vlm_vpr_ros.files.images import load_image
-from vlm_vpr_ros.geodesy import destination
+from vlm_vpr_ros.geodesy import EARTH_RADIUS_KM, destination
 
 log = logging.getLogger(__name__)
 
@@ -89,7 +89,7 @@ def lookalike_refs(places: list[tuple[str, float, float]], seed: int = 0) -> lis
     """The 4 references of every place (ids, coordinates), in a fixed order."""
     rng = np.random.default_rng([seed, 1])
     out = []
-    north_deg = SECOND_PHOTO_M / 1000.0 / 6371.0088 * 180.0 / np.pi
+    north_deg = SECOND_PHOTO_M / 1000.0 / EARTH_RADIUS_KM * 180.0 / np.pi
     for f, lat, lon in places:
         twin = destination(lat, lon, LOOKALIKE_KM, float(rng.uniform(0.0, 360.0)))
         for where, k in COPIES:

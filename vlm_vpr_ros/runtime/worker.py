@@ -261,9 +261,6 @@ class QueryRuntime:
             self.provider.close()
 
     # -- worker -----
-    def _fresh(self, frame: Frame | None, now: float) -> bool:
-        return frame is not None and now - frame.received <= self.config.max_frame_age_s
-
     def _relocalize_job(self, now: float) -> tuple[Frame, list[RelocalizeTicket]] | None:
         """The frame for the oldest pending request and every pending request of the same
         prior setting that this frame also answers; None: wait for a frame (caller holds
