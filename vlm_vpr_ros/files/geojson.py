@@ -6,10 +6,10 @@ One ``Feature`` per row of a results CSV, in the CSV's order, in a ``FeatureColl
   §3.1.1: longitude first, WGS 84 degrees, no ``crs`` member), rounded to 7 decimals (1 cm);
   ``null`` when the row has no valid estimate (no match, a failed query): RFC 7946 §3.2 allows
   a feature without geometry, and the row is not dropped (its ``flags`` say why).
-* ``properties``: ``file``, ``ref_id``, ``status``, ``flags`` (a list; ``|``-separated in the CSV), ``uncertainty_m``,
-  ``radius95_m``, ``p_correct``, ``confidence`` (numbers, or null where the CSV cell is empty
-  or not a number) and, with ground truth, ``truth`` (``[longitude, latitude]``) and
-  ``error_km`` (haversine).
+* ``properties``: ``file``, ``ref_id``, ``status``, ``flags`` (a list; ``|``-separated in the
+  CSV), ``uncertainty_m``, ``radius95_m``, ``p_correct``, ``confidence`` (numbers, or null
+  where the CSV cell is empty or not a number) and, with ground truth, ``truth``
+  (``[longitude, latitude]``) and ``error_km`` (great-circle, :mod:`vlm_vpr_ros.geodesy`).
 
 The file is written atomically (:mod:`vlm_vpr_ros.files.atomic`).
 """
