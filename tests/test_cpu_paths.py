@@ -45,7 +45,7 @@ def test_tables_identical_under_forced_code_paths(runs):
     assert "Prescott" in by["generic-faiss-blas"]["blas"]
     assert "x1" in by["all-forced"]["blas"] and "x1" not in by["default"]["blas"]
     tables = json.loads((work / "default" / "demo.json").read_text())["tables"]
-    assert set(tables) == {"map", "lookalike", "fixes"} and len(tables["map"]["rows"]) == 5
+    assert set(tables) == {"map", "lookalike", "fixes"} and len(tables["map"]["rows"]) == 4
     for name in by:
         assert json.loads((work / name / "demo.json").read_text())["tables"] == tables
 

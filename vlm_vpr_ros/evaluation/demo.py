@@ -22,9 +22,11 @@ by ``scripts/gen_docs.py``), with an error CDF and a contact sheet of the look-a
 demo is deterministic: the same numbers on every run, and every table row rests on facts that
 floating point does not move (a true match against non-matches, distances to the prior, exact
 ties broken by a stated rule), so the same tables on every CPU; ``scripts/check_cpu_paths.py``
-runs it under forced SIMD/BLAS/thread settings and compares. A row that would rank references
-that match nothing (``paper: re-rank, no submap`` on this 71-image map, whose whitened
-descriptors put every non-matching pair at nearly the same distance) is not shown.
+runs it under forced SIMD/BLAS/thread settings and compares. The paper's modes that pick among
+references that match nothing by descriptor distance are not shown: on this 71-image map the
+whitened descriptors put every non-matching pair at nearly the same distance, so that pick is
+floating-point noise (``paper: re-rank, no submap``: which 50 of 71 make the top-50;
+``paper: country submap, no re-rank``: the nearest reference of a submap without the place).
 
 When standard output is not a terminal (a log file, CI) a long step prints a plain progress line
 every :data:`HEARTBEAT_S` seconds; the last line gives the wall and CPU time.
@@ -55,9 +57,8 @@ DEMO_DATA = Path(__file__).resolve().parents[1] / "data" / "osv5m_demo"
 #: the demo's tables add street level (25 m) to the paper's thresholds
 THRESHOLDS = (0.025, *THRESHOLDS_KM)
 JSON_FORMAT = "vlm_vpr_ros.demo"
-VPR, PRIOR, PAPER, PAPER_NO_RR = ("VPR only (no prior)", "prior only (OSV-5M model)",
-                                  "paper: country submap+re-rank",
-                                  "paper: country submap, no re-rank")
+VPR, PRIOR, PAPER = ("VPR only (no prior)", "prior only (OSV-5M model)",
+                     "paper: country submap+re-rank")
 FUSED = "prior+VPR (default fusion)"
 TRUSTED = "prior+VPR, trust_prior_for_fix"
 #: seconds between two progress lines of a long step when stdout is not a terminal
@@ -273,7 +274,6 @@ def run_demo(out: str | Path, with_bag: bool = True, places: int | None = None) 
     paper = LocalizerConfig(fusion="paper")
     print(f"[3/{n_steps}] localizing the queries on the demo map ...", flush=True)
     runs = {VPR: Run(paper, prior=False), PRIOR: Run(None),
-            PAPER_NO_RR: Run(LocalizerConfig(fusion="paper", rerank=False)),
             PAPER: Run(paper), FUSED: Run(LocalizerConfig(fusion="posterior"), verify=True)}
     (out / "results").mkdir(parents=True, exist_ok=True)
     tables, extras = {}, {}
