@@ -87,6 +87,9 @@ def test_scalar_geod_and_array_haversine_paths_agree():
     assert np.max(np.abs(arr - scal)) < 1e-9
     assert np.max(np.abs(arr - _cosine_law_km(la1, lo1, la2, lo2))) < 1e-4
     assert math.isnan(haversine_km(math.nan, 0.0, 1.0, 1.0))
+    # beyond the poles (invalid input, flagged by callers) both paths give the same number
+    assert haversine_km(91.0, 0.0, 0.0, 0.0) == pytest.approx(
+        float(haversine_km(np.array([91.0]), 0.0, 0.0, 0.0)[0]), rel=1e-12)
     assert np.isnan(haversine_km(np.array([np.nan, 0.0]), 0.0, 1.0, 1.0)[0])
 
 

@@ -41,7 +41,9 @@ def haversine_km(lat1, lon1, lat2, lon2) -> np.ndarray | float:
     if all(isinstance(v, (int, float)) for v in (lat1, lon1, lat2, lon2)):
         if not all(math.isfinite(v) for v in (lat1, lon1, lat2, lon2)):
             return math.nan  # as the numpy path
-        return float(_SPHERE.inv(float(lon1), float(lat1), float(lon2), float(lat2))[2]) / 1e3
+        if abs(lat1) <= 90.0 and abs(lat2) <= 90.0:  # PROJ answers NaN beyond the poles
+            return float(_SPHERE.inv(float(lon1), float(lat1), float(lon2),
+                                     float(lat2))[2]) / 1e3
     return _numpy_haversine_km(lat1, lon1, lat2, lon2)
 
 
