@@ -120,13 +120,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description="Builds a map from the 71 shipped OpenStreetView-5M images, "
                                    "localizes re-cropped and re-lit copies of them without a "
                                    "prior, with the recorded OSV-5M priors (default fusion and "
-                                   "the paper's modes) and the prior alone; repeats it on a "
-                                   "look-alike map (every place also 5000 km away, built from "
-                                   "the shipped images) where VPR alone is wrong half the "
-                                   "time; the default fusion is verified (fix rate and fix "
-                                   "precision); then makes and evaluates a bag. Prints the "
+                                   "the paper's method) and the prior alone; repeats it on a "
+                                   "look-alike map (every place also 5000 km away with the same "
+                                   "image, built from the shipped images) where VPR alone cannot "
+                                   "tell them apart; the default fusion is verified (fix rate and "
+                                   "fix precision); then makes and evaluates a bag. Prints the "
                                    "tables, writes them to OUT/demo.json with an error CDF and a "
-                                   "contact sheet. About 1.5 minutes on 2 CPU cores.")
+                                   "contact sheet. About 2 CPU-minutes (it prints its time).")
     p.add_argument("--out", default="demo_out", metavar="DIR", help="output folder")
     p.add_argument("--skip-bag", action="store_true", help="skip the bag part of the demo")
     p.set_defaults(func=cmd_demo)
