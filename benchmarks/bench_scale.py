@@ -50,7 +50,7 @@ from benchmarks import cpuinfo  # noqa: E402
 SHARED = Path(os.environ.get("VLM_VPR_SHARED", REPO.parent / "shared"))
 MP16 = SHARED / "data" / "mp16_coords"
 CHUNK = 100_000
-EARTH_KM = 6371.0088
+from vlm_vpr_ros.geodesy import EARTH_RADIUS_KM as EARTH_KM  # noqa: E402 (after sys.path)
 
 
 # -- data --------------------------------------------------------------------------------------

@@ -1,9 +1,10 @@
 #!/usr/bin/env bash
 # One command installs everything vlm_vpr_ros needs into ./.venv (Debian/Ubuntu, Python 3.11+).
-# torch is installed on its own, pinned, before everything else. PyPI's Linux x86_64 wheel of
-# torch is the CUDA build (several GB of nvidia-* packages); on a CPU-only machine take the CPU
-# wheel from PyTorch's own index: TORCH_INDEX_URL=https://download.pytorch.org/whl/cpu make setup
-# (README "CPU-only machines"). TORCH_SPEC replaces the requirement itself.
+# torch is installed on its own, pinned, before everything else (requirements.txt's kornia then
+# finds it). By default that is PyPI's torch==2.13.0, on Linux x86_64 the CUDA build (several GB
+# of nvidia-* packages; it runs on a CPU too); for the CPU wheel from PyTorch's own index:
+# TORCH_INDEX_URL=https://download.pytorch.org/whl/cpu make setup (README "Which torch").
+# TORCH_SPEC replaces the requirement itself.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}

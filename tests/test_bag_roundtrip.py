@@ -54,6 +54,7 @@ def test_layout_and_metadata(made):
     assert bag_files(out) == [out / f"{out.name}.mcap"]
     meta = yaml.safe_load((out / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
     assert meta["version"] == 9 and meta["storage_identifier"] == "mcap"
+    _assert_jazzy(out / f"{out.name}.mcap", meta)
     assert meta["custom_data"]["writer"].startswith("vlm_vpr_ros ")
     assert meta["message_count"] == 2 * N
     assert meta["starting_time"]["nanoseconds_since_epoch"] == START
@@ -186,6 +187,29 @@ def test_definitions_match_a_rosbag2_recording(shared_dir):
         assert _definitions(ours, name) == _definitions(schemas[name], name)
 
 
+def _assert_jazzy(storage_file: Path, meta: dict) -> None:
+    """The bag names the ROS distribution its messages are from (not the writing library), in
+    metadata.yaml and in the copy inside the storage file (sqlite3: also its schema table);
+    read with the mcap library and sqlite3 directly."""
+    import sqlite3
+
+    assert meta["ros_distro"] == "jazzy"
+    if storage_file.suffix == ".db3":
+        con = sqlite3.connect(storage_file)
+        try:
+            assert con.execute("SELECT ros_distro FROM schema").fetchall() == [("jazzy",)]
+            (inner,), = con.execute("SELECT metadata FROM metadata").fetchall()
+        finally:
+            con.close()
+    else:
+        from mcap.reader import make_reader
+
+        with storage_file.open("rb") as f:
+            records = {m.name: m.metadata for m in make_reader(f).iter_metadata()}
+        inner = records["rosbag2"]["serialized_metadata"]
+    assert yaml.safe_load(inner)["ros_distro"] == "jazzy"
+
+
 def test_sqlite3_storage_and_zstd_chunks(demo_data, subset, tmp_path):
     """The same frames as a sqlite3 bag and as a zstd-compressed MCAP read back identically
     (our reader and rosbags), with the storage rosbag2 names in metadata.yaml."""
@@ -202,6 +226,7 @@ def test_sqlite3_storage_and_zstd_chunks(demo_data, subset, tmp_path):
         meta = yaml.safe_load((out / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
         assert meta["storage_identifier"] == storage
         assert bag_files(out)[0].suffix == (".db3" if storage == "sqlite3" else ".mcap")
+        _assert_jazzy(bag_files(out)[0], meta)
         bag = open_bag(out)
         assert bag.storage == storage and bag.complete
         ours = sorted((m.topic, m.log_time_ns, m.data) for m in bag.messages())

@@ -128,6 +128,9 @@ def test_printed_tables_are_the_json_tables(demo_run, doc):
         assert doc["tables"][step] == {"title": TITLES[step], "columns": head, "rows": body}
         assert head[2] == "25m"
     assert "built from the shipped images" in printed  # the look-alikes are stated as such
+    # the twins are exact ties (same image, same descriptor) for every query, said as such
+    assert "for 71 of 71 queries\n      the best match's twin is at the bit-identical" in printed
+    assert "[1/5]" in printed and " s CPU; tables in " in printed  # steps and the time it took
     from vlm_vpr_ros.evaluation.demo import fixes_table
     from vlm_vpr_ros.evaluation.metrics import format_cells
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from vlm_vpr_ros.evaluation.metrics import errors_km, format_table, summarize
-from vlm_vpr_ros.geodesy import (EARTH_RADIUS_KM, accuracy_table, enu_offset_m, haversine_km,
+from vlm_vpr_ros.geodesy import (EARTH_RADIUS_KM, accuracy_table, destination, haversine_km,
                                  median_km, spherical_mean)
 
 
@@ -66,6 +66,43 @@ def test_spherical_mean_handles_antimeridian():
     assert abs(abs(lon) - 180.0) < 1e-6 and lat == pytest.approx(10.0, abs=0.01)
 
 
-def test_enu_offset_small_displacement():
-    east, north = enu_offset_m(0.0, 0.0, 0.001, 0.001)
-    assert east == pytest.approx(111.195, abs=0.01) and north == pytest.approx(111.195, abs=0.01)
+def _cosine_law_km(lat1, lon1, lat2, lon2):
+    """An independent great-circle distance (spherical law of cosines, float64)."""
+    p1, p2, dl = np.radians(lat1), np.radians(lat2), np.radians(np.subtract(lon2, lon1))
+    c = np.sin(p1) * np.sin(p2) + np.cos(p1) * np.cos(p2) * np.cos(dl)
+    return EARTH_RADIUS_KM * np.arccos(np.clip(c, -1.0, 1.0))
+
+
+def test_scalar_geod_and_array_haversine_paths_agree():
+    """Scalars go through pyproj.Geod, arrays through the numpy haversine: the same distances
+    (to a micrometre) and both equal an independent formula away from its ill-conditioned
+    small angles; NaN in, NaN out on both paths."""
+    rng = np.random.default_rng(3)
+    la1, la2 = rng.uniform(-89, 89, (2, 200))
+    lo1, lo2 = rng.uniform(-180, 180, (2, 200))
+    arr = haversine_km(la1, lo1, la2, lo2)
+    scal = np.array([haversine_km(float(a), float(b), float(c), float(d))
+                     for a, b, c, d in zip(la1, lo1, la2, lo2)])
+    assert isinstance(haversine_km(1.0, 2.0, 3.0, 4.0), float)
+    assert np.max(np.abs(arr - scal)) < 1e-9
+    assert np.max(np.abs(arr - _cosine_law_km(la1, lo1, la2, lo2))) < 1e-4
+    assert math.isnan(haversine_km(math.nan, 0.0, 1.0, 1.0))
+    # beyond the poles (invalid input, flagged by callers) both paths give the same number
+    assert haversine_km(91.0, 0.0, 0.0, 0.0) == pytest.approx(
+        float(haversine_km(np.array([91.0]), 0.0, 0.0, 0.0)[0]), rel=1e-12)
+    assert np.isnan(haversine_km(np.array([np.nan, 0.0]), 0.0, 1.0, 1.0)[0])
+
+
+@pytest.mark.parametrize("lat,lon,km,bearing", [(48.85, 2.35, 5000.0, 77.0),
+                                                (-33.9, 151.2, 1234.5, 200.0),
+                                                (10.0, 179.9, 300.0, 90.0), (0.0, 0.0, 0.01, 0.0)])
+def test_destination_lies_at_the_distance_and_bearing(lat, lon, km, bearing):
+    la2, lo2 = destination(lat, lon, km, bearing)
+    assert -180.0 <= lo2 < 180.0
+    assert float(_cosine_law_km(lat, lon, la2, lo2)) == pytest.approx(km, rel=1e-6, abs=1e-6)
+    # initial bearing of the great circle to the destination (independent formula)
+    p1, p2, dl = map(math.radians, (lat, la2, lo2 - lon))
+    b = math.degrees(math.atan2(math.sin(dl) * math.cos(p2),
+                                math.cos(p1) * math.sin(p2)
+                                - math.sin(p1) * math.cos(p2) * math.cos(dl))) % 360.0
+    assert min(abs(b - bearing), 360.0 - abs(b - bearing)) < 1e-6

@@ -259,8 +259,9 @@ def test_foxglove_layout_shows_the_nodes_topics(stack):
                          if isinstance(n, ast.Call) and getattr(n.func, "id", "") ==
                          "DeclareLaunchArgument" and n.args[0].value == "image")
     for pid, topic in topics.items():
-        if pid == "Image!vprcamera":  # the camera: the node's 'image', remapped by the launch
-            assert topic == default_image and "/image" in subscribed
+        if pid == "Image!vprcamera":  # the camera's compressed stream (the README's replay
+            # recipe and image_transport cameras): the node's 'image/compressed' in the launch
+            assert topic == default_image + "/compressed" and "/image" in subscribed
         else:
             assert topic in published, f"{pid}: {topic} not among {sorted(published)}"
     assert {"/fix", "/diagnostics", f"{NODE}/debug_image/compressed",

@@ -9,6 +9,9 @@ ROS 2 Jazzy type store. What this module adds around it:
   files and folder are ``fsync``-ed, and only then is it renamed to ``BAG`` (an old bag there is
   replaced last), so a half-written bag never appears under the target name;
 * messages as rclpy objects (serialized with ``rclpy.serialization``) or as CDR bytes;
+* ``ros_distro: jazzy`` (:data:`ROS_DISTRO`, the type store's distribution) where rosbags
+  writes its own name: ``metadata.yaml``, the copy of it inside the storage file, and a sqlite3
+  bag's ``schema`` table;
 * one error type: :class:`~vlm_vpr_ros.errors.BagError` (OS errors: ``OutputError``).
 """
 
@@ -18,6 +21,7 @@ import functools
 import logging
 import os
 import shutil
+import sqlite3
 import time
 from pathlib import Path
 from typing import Any
@@ -26,7 +30,7 @@ from rosbags.rosbag2 import WriterError
 
 from vlm_vpr_ros import __version__
 from vlm_vpr_ros.errors import BagError, OutputError
-from vlm_vpr_ros.files.atomic import describe_os_error, fsync_tree
+from vlm_vpr_ros.files.atomic import atomic_write_text, describe_os_error, fsync_tree
 from vlm_vpr_ros.files.csvio import write_csv_atomic
 
 log = logging.getLogger(__name__)
@@ -35,6 +39,9 @@ STORAGES = ("mcap", "sqlite3")
 #: chunk compression of MCAP bags (rosbags writes zstd chunks; sqlite3 bags are uncompressed)
 COMPRESSIONS = ("none", "zstd")
 METADATA_VERSION = 9
+#: the ROS distribution recorded in bags (the messages are Jazzy's: :func:`typestore`)
+ROS_DISTRO = "jazzy"
+_ROSBAGS_DISTRO = "ros_distro: rosbags"
 #: rmw's "infinite" duration as rosbag2 stores it in QoS profiles
 _INFINITE = (9223372036, 854775807)
 
@@ -95,9 +102,39 @@ class BagWriter:
                 self._bag.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
             self._bag.set_custom_data("writer", f"vlm_vpr_ros {__version__}")
             self._bag.open()
+            self._distro_in_storage()
         except OSError as exc:
             shutil.rmtree(self._stage, ignore_errors=True)
             raise OutputError(describe_os_error(exc, self.path)) from None
+
+    def _distro_in_storage(self) -> None:
+        """The metadata rosbags hands its storage on close (MCAP metadata record, sqlite3
+        ``metadata`` table) names :data:`ROS_DISTRO` instead of "rosbags"."""
+        storage = getattr(self._bag, "storage", None)
+        close = getattr(storage, "close", None)
+        if close is None:
+            return
+
+        def close_with_distro(version: int, metadata: str) -> None:
+            close(version, metadata.replace(_ROSBAGS_DISTRO, f"ros_distro: {ROS_DISTRO}"))
+
+        storage.close = close_with_distro
+
+    def _distro_in_metadata(self, staged: Path) -> None:
+        """``ros_distro: jazzy`` in the finished bag's ``metadata.yaml`` (and a sqlite3 bag's
+        ``schema`` table), where rosbags wrote its own name."""
+        meta = staged / "metadata.yaml"
+        text = meta.read_text(encoding="utf-8")
+        if _ROSBAGS_DISTRO in text:
+            atomic_write_text(meta, text.replace(_ROSBAGS_DISTRO, f"ros_distro: {ROS_DISTRO}"))
+        for db in staged.glob("*.db3"):
+            con = sqlite3.connect(db)
+            try:
+                with con:
+                    con.execute("UPDATE schema SET ros_distro = ? WHERE ros_distro = 'rosbags'",
+                                (ROS_DISTRO,))
+            finally:
+                con.close()
 
     # -- topics and messages -------------------------------------------------------------------
     def add_topic(self, topic: str, type_name: str, qos: list[Any] | None = None) -> None:
@@ -139,6 +176,7 @@ class BagWriter:
         old = self._stage / ".old"
         try:
             self._bag.close()
+            self._distro_in_metadata(staged)
             fsync_tree(staged)
             if self.path.exists():
                 os.replace(self.path, old)
@@ -146,7 +184,7 @@ class BagWriter:
             fsync_tree(self.path.parent, files=False)
         except OSError as exc:
             raise OutputError(describe_os_error(exc, self.path)) from None
-        except WriterError as exc:
+        except (WriterError, sqlite3.Error) as exc:
             raise BagError(f"cannot finish {self.path}: {exc}") from None
         finally:
             shutil.rmtree(self._stage, ignore_errors=True)

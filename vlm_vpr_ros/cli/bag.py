@@ -11,7 +11,7 @@ from pathlib import Path
 from vlm_vpr_ros.cli.common import (add_descriptor_option_args, add_localizer_args,
                                     add_prior_args, descriptor_options, localizer_config,
                                     make_prior_provider)
-from vlm_vpr_ros.cli.core import add_integrity_args
+from vlm_vpr_ros.cli.evaluate import add_integrity_args
 
 log = logging.getLogger(__name__)
 
@@ -25,7 +25,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                                     "sensor_msgs/NavSatFix ground truth of the same stamp, as a "
                                     "rosbag2 bag folder (MCAP or sqlite3, metadata.yaml; "
                                     "frames.csv beside).")
-    m.add_argument("--images", required=True, metavar="DIR")
+    m.add_argument("--images", required=True, metavar="DIR",
+                   help="folder of the images named in --coords")
     m.add_argument("--coords", required=True, metavar="CSV", help="columns file, lat, lon")
     m.add_argument("--out", required=True, metavar="BAG", help="bag folder to create")
     m.add_argument("--rate", type=float, default=1.0, metavar="HZ", help="frames per second")
@@ -34,8 +35,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "rgb8 sensor_msgs/Image")
     m.add_argument("--topic-prefix", default="/camera", metavar="NS",
                    help="image topic is NS/image_raw[/compressed] (default /camera)")
-    m.add_argument("--gt-topic", default="/gps/fix", metavar="TOPIC")
-    m.add_argument("--frame-id", default="camera", metavar="ID")
+    m.add_argument("--gt-topic", default="/gps/fix", metavar="TOPIC",
+                   help="sensor_msgs/NavSatFix ground-truth topic (default /gps/fix)")
+    m.add_argument("--frame-id", default="camera", metavar="ID",
+                   help="header.frame_id of the image messages (default camera)")
     m.add_argument("--start-time", default=None, metavar="SEC[.NANOSEC]",
                    help="stamp of the first frame, seconds since the epoch, read exactly (up "
                         "to 9 decimals; default: now)")
@@ -43,11 +46,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="rosbag2 storage: BAG/BAG.mcap (default) or BAG/BAG.db3")
     m.add_argument("--mcap-compression", choices=["none", "zstd"], default="none",
                    help="MCAP chunk compression (default none; zstd needs --storage mcap)")
-    m.add_argument("--overwrite", action="store_true")
+    m.add_argument("--overwrite", action="store_true",
+                   help="replace an existing bag folder (kept until the new one is complete)")
     m.set_defaults(func=cmd_bag_make)
     i = bsub.add_parser("info", help="topics, types and counts of a bag")
-    i.add_argument("bag", metavar="BAG")
-    i.add_argument("--json", action="store_true")
+    i.add_argument("bag", metavar="BAG", help="bag folder, .mcap or .db3")
+    i.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     i.set_defaults(func=cmd_bag_info)
 
     r = sub.add_parser("replay", help="publish a bag's messages on live ROS 2 topics",
@@ -57,7 +61,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--rate", type=float, default=1.0, metavar="X", help="speed factor")
     r.add_argument("--loop", action="store_true", help="start over at the end (Ctrl-C stops)")
     r.add_argument("--topics", nargs="+", default=None, metavar="T", help="only these topics")
-    r.add_argument("--remap", action="append", default=[], metavar="FROM:=TO")
+    r.add_argument("--remap", action="append", default=[], metavar="FROM:=TO",
+                   help="publish topic FROM as TO (repeatable)")
     r.add_argument("--wait-subscribers", type=float, default=5.0, metavar="S",
                    help="wait up to S seconds for a subscriber on every topic (default 5)")
     r.add_argument("--domain-id", type=int, default=None, metavar="N",
@@ -73,15 +78,16 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "node), writes frames.csv, summary.json, world_map.png, "
                                    "error_cdf.png, the integrity report (integrity.json, "
                                    "stanford.png) and an estimates bag.")
-    e.add_argument("bag", metavar="BAG")
-    e.add_argument("--map", required=True, metavar="MAP")
+    e.add_argument("bag", metavar="BAG", help="bag folder, .mcap or .db3")
+    e.add_argument("--map", required=True, metavar="MAP", help="map folder to localize on")
     _frame_args(e)
     e.add_argument("--out", default=None, metavar="DIR",
                    help="output folder (default: BAG_eval next to the bag)")
     e.add_argument("--overwrite", action="store_true",
                    help="replace an earlier evaluation folder (kept until the new one is "
                         "complete)")
-    e.add_argument("--no-plots", action="store_true")
+    e.add_argument("--no-plots", action="store_true",
+                   help="skip world_map.png and error_cdf.png")
     e.add_argument("--json", action="store_true", help="print only a JSON object on stdout")
     add_integrity_args(e, None)
     add_descriptor_option_args(e)
@@ -95,7 +101,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "plus the default posterior fusion with and without the "
                                    "prior, x a top-p sweep, from one map (re-partitioned in "
                                    "memory).")
-    a.add_argument("--map", required=True, metavar="MAP")
+    a.add_argument("--map", required=True, metavar="MAP", help="map folder to ablate on")
     a.add_argument("--images", metavar="DIR", help="query images (with --queries)")
     a.add_argument("--queries", metavar="CSV", help="query file, lat, lon")
     a.add_argument("--bag", metavar="BAG", help="or: take the queries from a bag")
@@ -107,7 +113,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     a.add_argument("--table-top-p", type=int, default=None, metavar="P",
                    help="top-p of the main table (default: the largest swept)")
     a.add_argument("--metric", default="25km", help="threshold of the sweep table")
-    a.add_argument("--out", default="ablation_out", metavar="DIR")
+    a.add_argument("--out", default="ablation_out", metavar="DIR",
+                   help="output folder (default ablation_out)")
     a.add_argument("--json", action="store_true", help="print only a JSON object on stdout")
     add_descriptor_option_args(a)
     add_prior_args(a)
@@ -121,7 +128,8 @@ def _frame_args(p: argparse.ArgumentParser) -> None:
                    help="NavSatFix ground-truth topic (default: the bag's only one)")
     p.add_argument("--max-gt-gap", type=float, default=0.5, metavar="S",
                    help="pair a frame with a fix at most S seconds away (default 0.5)")
-    p.add_argument("--max-frames", type=int, default=None, metavar="N")
+    p.add_argument("--max-frames", type=int, default=None, metavar="N",
+                   help="only the first N frames (default: all)")
 
 
 def parse_stamp(text: str, what: str) -> int:

@@ -34,7 +34,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Conformal calibration of the 68 %% / 95 %% radii from a results CSV of "
                     "'vlm-vpr localize' on this map and its ground truth; stored in the map's "
                     "calibration.json (docs/fusion.md).")
-    p.add_argument("--results", required=True, metavar="RESULTS.csv")
+    p.add_argument("--results", required=True, metavar="RESULTS.csv",
+                   help="results CSV written by 'vlm-vpr localize' on --map")
     p.add_argument("--ground-truth", required=True, metavar="CSV",
                    help="file, lat, lon (or IMG_ID, LAT, LON)")
     p.add_argument("--map", required=True, metavar="MAP", help="the map the results came from")

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import os
 from pathlib import Path
@@ -14,6 +13,7 @@ from vlm_vpr_ros.cli.common import (add_descriptor_option_args, add_localizer_ar
                                     local_feature_options, localizer_config,
                                     make_prior_provider, status_policy, verification_config)
 from vlm_vpr_ros.cli.distributed import add_engine_args, cmd_build_map_ray, engine_options
+from vlm_vpr_ros.cli.evaluate import add_integrity_args, cmd_evaluate
 from vlm_vpr_ros.errors import ConfigError, DataError, MapError
 
 log = logging.getLogger(__name__)
@@ -69,7 +69,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "--fusion posterior; --fusion paper: the paper's nearest "
                                    "submap + re-rank by distance to the prior). "
                                    "docs/fusion.md.")
-    p.add_argument("--map", required=True, metavar="MAP")
+    p.add_argument("--map", required=True, metavar="MAP", help="map folder to localize on")
     p.add_argument("--images", metavar="DIR", help="folder of query images (optional with "
                    "--query-descriptors: then only given to a prior that needs pixels)")
     p.add_argument("--query-descriptors", metavar="Q.npy", default=None,
@@ -103,11 +103,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_localize)
 
     p = sub.add_parser("evaluate", help="accuracy of a results CSV against ground truth")
-    p.add_argument("--results", required=True, metavar="RESULTS.csv")
+    p.add_argument("--results", required=True, metavar="RESULTS.csv",
+                   help="results CSV written by 'vlm-vpr localize'")
     p.add_argument("--ground-truth", required=True, metavar="CSV",
                    help="file, lat, lon (or IMG_ID, LAT, LON)")
     p.add_argument("--json", action="store_true", help="print only a JSON object on stdout")
     add_integrity_args(p, "RESULTS_integrity/ beside the results CSV")
+    p.add_argument("--geojson", metavar="OUT.geojson", default=None,
+                   help="also write the results as GeoJSON (RFC 7946: [lon, lat] points, "
+                        "with truth and error_km) for a GIS")
     p.set_defaults(func=cmd_evaluate)
 
     p = sub.add_parser("descriptors", help="list the descriptor presets")
@@ -117,13 +121,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description="Builds a map from the 71 shipped OpenStreetView-5M images, "
                                    "localizes re-cropped and re-lit copies of them without a "
                                    "prior, with the recorded OSV-5M priors (default fusion and "
-                                   "the paper's modes) and the prior alone; repeats it on a "
-                                   "look-alike map (every place also 5000 km away, built from "
-                                   "the shipped images) where VPR alone is wrong half the "
-                                   "time; the default fusion is verified (fix rate and fix "
-                                   "precision); then makes and evaluates a bag. Prints the "
+                                   "the paper's method) and the prior alone; repeats it on a "
+                                   "look-alike map (every place also 5000 km away with the same "
+                                   "image, built from the shipped images) where VPR alone cannot "
+                                   "tell them apart; the default fusion is verified (fix rate and "
+                                   "fix precision); then makes and evaluates a bag. Prints the "
                                    "tables, writes them to OUT/demo.json with an error CDF and a "
-                                   "contact sheet. About 1.5 minutes on 2 CPU cores.")
+                                   "contact sheet. About 2 CPU-minutes (it prints its time).")
     p.add_argument("--out", default="demo_out", metavar="DIR", help="output folder")
     p.add_argument("--skip-bag", action="store_true", help="skip the bag part of the demo")
     p.set_defaults(func=cmd_demo)
@@ -377,62 +381,6 @@ def _localize_descriptors(args: argparse.Namespace, files: list[str]) -> int:
     flagged = sum(1 for r in rows if r.get("flags"))
     print(f"{len(rows)} queries localized -> {args.out} ({flagged} with flags)")
     return 0
-
-
-def cmd_evaluate(args: argparse.Namespace) -> int:
-    from vlm_vpr_ros.evaluation import integrity, integrity_tables
-    from vlm_vpr_ros.evaluation.metrics import format_table
-    from vlm_vpr_ros.evaluation.results_csv import JUNK, evaluate_results_csv
-
-    alert_m = integrity.check_alert_limit(args.alert_limit_m)
-    summary, extra = evaluate_results_csv(args.results, args.ground_truth)
-    integ = integrity.evaluate_integrity(  # docs/evaluation.md "Integrity"
-        args.results, args.ground_truth, alert_m,
-        args.integrity_out or integrity.default_out_dir(args.results), args.overwrite)
-    if args.json:
-        print(json.dumps({**summary, "recall_pct": extra["recall_pct"], "fixes": extra["fixes"],
-                          "coverage68_pct": round(extra["coverage_pct"], 2),
-                          "coverage95_pct": (None if extra["coverage95_pct"] is None
-                                             else round(extra["coverage95_pct"], 2)),
-                          "integrity": integ, "junk_rows": extra["junk_rows"],
-                          "junk": extra["junk"]}))
-        return 0
-    print(format_table({"results": summary}, title=f"accuracy of {args.results}"))
-    c95 = extra["coverage95_pct"]
-    print(f"coverage: the 68 % radius (uncertainty_m) holds the truth in "
-          f"{extra['coverage_pct']:.1f}% of rows, the 95 % radius (radius95_m) in "
-          + ("- (no radius95_m column)" if c95 is None else f"{c95:.1f}%")
-          + f"; {extra['flagged']} flagged rows (a fallback flag); {extra['missing_gt']} rows "
-          "without ground truth")
-    if extra["junk_rows"]:
-        print(f"junk rows, counted but not scored: {extra['junk_rows']} ("
-              + ", ".join(f"{JUNK[k]}: {v}" for k, v in extra["junk"].items())
-              + f"); e.g. {extra['junk_examples'][0]}")
-    rec, fx = extra["recall_pct"], extra["fixes"]
-    print("recall within 25 m: " + ("- (no top_positions column)" if rec is None else
-                                    "  ".join(f"R{k} {v:.1f}%" for k, v in rec.items())))
-    if fx is None:
-        print("fixes: - (no status column: results of an older version)")
-    else:
-        prec = ("-" if fx["n"] == 0 else f"{fx['precision25_pct']:.1f}% within 25 m, "
-                f"{fx['precision50_pct']:.1f}% within 50 m")
-        print(f"fixes (status fix): {fx['n']} of {summary['n']} ({fx['rate_pct']:.1f}%); "
-              f"precision {prec}")
-    print("\n" + integrity_tables.format_report(integ, "integrity (docs/evaluation.md)"))
-    for key, path in integ["outputs"].items():
-        print(f"{key:>14}: {path}")
-    return 0
-
-
-def add_integrity_args(p: argparse.ArgumentParser, where: str | None) -> None:
-    """``--alert-limit-m`` (and, with ``where``, ``--integrity-out`` / ``--overwrite``)."""
-    p.add_argument("--alert-limit-m", default="50", metavar="M",
-                   help="alert limit of the integrity report (Stanford diagram), m (default 50)")
-    if where is not None:
-        p.add_argument("--integrity-out", default=None, metavar="DIR",
-                       help=f"folder for integrity.json and stanford.png (default: {where})")
-        p.add_argument("--overwrite", action="store_true",
-                       help="replace an earlier integrity folder (default: keep it, warn)")
 
 
 def cmd_descriptors(args: argparse.Namespace) -> int:

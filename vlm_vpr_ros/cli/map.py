@@ -44,7 +44,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         description="Removes the listed references; affected submaps are "
                                     "rewritten, emptied ones dropped. Unknown ids change "
                                     "nothing.")
-    r.add_argument("map", metavar="MAP")
+    r.add_argument("map", metavar="MAP", help="map folder to shrink")
     r.add_argument("--ids", required=True, metavar="FILE",
                    help="one reference id per line (# comments allowed), or a CSV with a "
                         "'file' column")
@@ -53,7 +53,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     q = msub.add_parser("info", help="counts, submap sizes and index kinds, disk and RAM",
                         description="Reads only the manifest and file sizes (fast at any scale).")
-    q.add_argument("map", metavar="MAP")
+    q.add_argument("map", metavar="MAP", help="map folder")
     q.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     q.set_defaults(func=cmd_info)
 
@@ -61,18 +61,19 @@ def register(sub: argparse._SubParsersAction) -> None:
                         description="The full integrity pass: every byte against its "
                                     "sha256 (opening a map checks sizes, small files whole "
                                     "and sampled pages of the large ones).")
-    q.add_argument("map", metavar="MAP")
+    q.add_argument("map", metavar="MAP", help="map folder")
     q.set_defaults(func=cmd_verify)
 
     q = msub.add_parser("upgrade", help="convert a map to format v2 (optionally another index)",
                         description="Writes a new v2 map folder beside the old one (never over "
                                     "it): memory-mapped, lazily opened submaps.")
-    q.add_argument("map", metavar="MAP")
+    q.add_argument("map", metavar="MAP", help="map folder to convert (left as it is)")
     q.add_argument("--out", required=True, metavar="NEW_MAP", help="folder to write (must not "
                    "exist)")
     q.add_argument("--index", choices=["flat", "fp16", "pq"], default=None,
                    help="index kind of the new map (default: keep the old one)")
-    q.add_argument("--rerank-factor", type=int, default=None, metavar="F")
+    q.add_argument("--rerank-factor", type=int, default=None, metavar="F",
+                   help="pq: re-rank the top k*F PQ candidates exactly (default: the old map's)")
     q.set_defaults(func=cmd_upgrade)
 
 def cmd_map_add(args: argparse.Namespace) -> int:

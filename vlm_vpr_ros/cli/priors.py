@@ -51,7 +51,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "ask", help="ask the configured VLM endpoint for one image's position",
         description="One request through the prior provider (default 'openai'): least-to-most "
                     "prompt, retries, cache. Exit status 1 when no prior came back.")
-    a.add_argument("--image", required=True, metavar="FILE")
+    a.add_argument("--image", required=True, metavar="FILE", help="the image to ask about")
     a.add_argument("--base-url", default=None, metavar="URL",
                    help="shortcut for --prior-option base_url=URL (default OpenAI; e.g. "
                         "http://localhost:11434/v1 for Ollama)")

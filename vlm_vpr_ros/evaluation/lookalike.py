@@ -1,13 +1,24 @@
 """The demo's look-alike step: a map where every place has a look-alike far away.
 
 Built from the shipped images, and said so in the demo's output: for each of the 71 places,
-four independent mild copies of its one image (an 85-95 % crop resized back, a small brightness
-and contrast change, JPEG) — two at the place (the second :data:`SECOND_PHOTO_M` north of the
-first, as two photos of a mapped route) and two at a look-alike place :data:`LOOKALIKE_KM` away
-in a random, seeded direction. To the descriptor the true place and its look-alike are the same
-kind of copy, so VPR alone picks either with about equal odds; a prior that is closer to the
-true place than to the look-alike can tell them apart. This is the situation the method is for
-(similar streets, buildings and chains in many cities), shrunk to a 284-reference map.
+two independent mild copies of its one image (an 85-95 % crop resized back, a small brightness
+and contrast change, JPEG), the second :data:`SECOND_PHOTO_M` north of the first (two photos
+of a mapped route). Each copy is in the map twice: at the place, and at a look-alike place
+:data:`LOOKALIKE_KM` away in a random, seeded direction — the same image, so the same global
+descriptor and local features, bit for bit (described once, the twin's row is a copy). VPR
+therefore cannot tell a place from its look-alike: the two are at exactly the same descriptor
+distance from any query, on every machine, and the search breaks such a tie by a stated rule,
+the map's order (submap, then row; :mod:`vlm_vpr_ros.maps.search`), so "VPR only" is right
+exactly where the place's submap comes before its look-alike's (country submaps: the country
+codes' alphabetical order) — about half the places, and the same half on every machine. A prior
+that is closer to the true place than to the look-alike tells them apart. This is the situation
+the method is for (similar streets, buildings and chains in many cities), shrunk to a
+284-reference map.
+
+Why exact twins: with four independent copies the choice between a place and its look-alike
+rested on distance differences of the order of the descriptor's floating-point differences
+between CPUs (SIMD paths of OpenCV, FAISS and OpenBLAS), and the demo's table changed from one
+machine to another. :func:`twin_ties` checks the tie on the built map.
 
 The references are written as images with a coordinates CSV (``refs/``, ``refs.csv``), described
 with the demo map's fitted descriptor and assembled into a map folder with its fusion
@@ -24,7 +35,7 @@ import cv2
 import numpy as np
 
 from vlm_vpr_ros.files.images import load_image
-from vlm_vpr_ros.geodesy import destination
+from vlm_vpr_ros.geodesy import EARTH_RADIUS_KM, destination
 
 log = logging.getLogger(__name__)
 
@@ -47,6 +58,19 @@ class LookalikeRef:
     lon: float
     lookalike: bool  # True: at the look-alike place, not where the photo was taken
 
+    @property
+    def image(self) -> str:
+        """The reference whose image (and descriptor) this one has: a look-alike has its
+        place's copy, byte for byte."""
+        return self.id.replace("lookalike", "place", 1) if self.lookalike else self.id
+
+
+def twin_id(ref_id: str) -> str:
+    """The other reference with the same image: place<k>/f <-> lookalike<k>/f."""
+    if ref_id.startswith("lookalike"):
+        return ref_id.replace("lookalike", "place", 1)
+    return ref_id.replace("place", "lookalike", 1)
+
 
 def mild_copy(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """Another photo of the same view: 85-95 % crop resized to 640x480, brightness and
@@ -65,7 +89,7 @@ def lookalike_refs(places: list[tuple[str, float, float]], seed: int = 0) -> lis
     """The 4 references of every place (ids, coordinates), in a fixed order."""
     rng = np.random.default_rng([seed, 1])
     out = []
-    north_deg = SECOND_PHOTO_M / 1000.0 / 6371.0088 * 180.0 / np.pi
+    north_deg = SECOND_PHOTO_M / 1000.0 / EARTH_RADIUS_KM * 180.0 / np.pi
     for f, lat, lon in places:
         twin = destination(lat, lon, LOOKALIKE_KM, float(rng.uniform(0.0, 360.0)))
         for where, k in COPIES:
@@ -77,19 +101,23 @@ def lookalike_refs(places: list[tuple[str, float, float]], seed: int = 0) -> lis
 
 def write_refs(images_dir: Path, places: list[tuple[str, float, float]], out: Path,
                seed: int = 0) -> list[LookalikeRef]:
-    """Write ``out/refs/<copy>/<file>`` (JPEG) and ``out/refs.csv`` (file, lat, lon)."""
+    """Write ``out/refs/<copy>/<file>`` (JPEG; a look-alike's file is its place's copy, the
+    same bytes) and ``out/refs.csv`` (file, lat, lon)."""
     from vlm_vpr_ros.files.atomic import atomic_write_bytes
     from vlm_vpr_ros.files.csvio import write_csv_atomic
 
     refs = lookalike_refs(places, seed)
+    written: dict[str, bytes] = {}
     for i, ref in enumerate(refs):
         if i % len(COPIES) == 0:
             image = load_image(images_dir / ref.source)
-        copy = mild_copy(image, np.random.default_rng([seed, 2, i]))
-        ok, data = cv2.imencode(".jpg", cv2.cvtColor(copy, cv2.COLOR_RGB2BGR),
-                                [cv2.IMWRITE_JPEG_QUALITY, 90])
+        if ref.image not in written:
+            copy = mild_copy(image, np.random.default_rng([seed, 2, i]))
+            ok, data = cv2.imencode(".jpg", cv2.cvtColor(copy, cv2.COLOR_RGB2BGR),
+                                    [cv2.IMWRITE_JPEG_QUALITY, 90])
+            written[ref.image] = data.tobytes()
         (out / "refs" / ref.id).parent.mkdir(parents=True, exist_ok=True)
-        atomic_write_bytes(out / "refs" / ref.id, data.tobytes())
+        atomic_write_bytes(out / "refs" / ref.id, written[ref.image])
     write_csv_atomic(out / "refs.csv", ["file", "lat", "lon"],
                      [{"file": r.id, "lat": r.lat, "lon": r.lon} for r in refs])
     return refs
@@ -107,12 +135,13 @@ def build_lookalike_map(pipe, refs: list[LookalikeRef], refs_dir: Path, map_dir:
     from vlm_vpr_ros.maps.reference_map import ReferenceMap
 
     refx = ReferenceExtractor(pipe.descriptor, "sift")
-    desc, local = [], {}
-    for r in refs:
-        d, f = refx.describe([load_image(refs_dir / r.id)])
-        desc.append(d[0])
-        local[r.id] = f[0]
-    desc = np.stack(desc)
+    described, local = {}, {}
+    for r in refs:  # each image once: a look-alike gets its place's very arrays
+        if r.image not in described:
+            d, f = refx.describe([load_image(refs_dir / r.image)])
+            described[r.image], local[r.image] = d[0], f[0]
+        local[r.id] = local[r.image]
+    desc = np.stack([described[r.image] for r in refs])
     coords = np.array([(r.lat, r.lon) for r in refs], dtype=np.float64)
     ref_map = assemble_map(desc, coords, [r.id for r in refs], pipe.map.descriptor_identity,
                            pipe.map.descriptor_state, "country",
@@ -124,6 +153,23 @@ def build_lookalike_map(pipe, refs: list[LookalikeRef], refs_dir: Path, map_dir:
         write_local_features(ref_map, refx, local.__getitem__, loo_queries=LOO_QUERIES)
         stage.commit(validate=ReferenceMap.load)
     return ReferenceMap.load(map_dir)
+
+
+def twin_ties(ref_map, qdesc: np.ndarray, k: int = 8) -> tuple[int, int]:
+    """(queries whose best match's twin is at the bit-identical squared distance, queries
+    with a best match): the tie :func:`build_lookalike_map` builds, as the map's search sees
+    it (no prior, all submaps)."""
+    everything = list(range(len(ref_map.submaps)))
+    tied = answered = 0
+    for q in np.asarray(qdesc, np.float32):
+        found = ref_map.search_submaps(everything, q.reshape(1, -1), k)
+        if not found:
+            continue
+        answered += 1
+        ids = [(ref_map.submaps[si].ids[j], d) for d, si, j in found]
+        best, dist = ids[0]
+        tied += any(i == twin_id(best) and d == dist for i, d in ids[1:])
+    return tied, answered
 
 
 def _caption(ref_id: str, err_km: float | None) -> tuple[str, bool]:

@@ -18,22 +18,9 @@ import numpy as np
 
 from vlm_vpr_ros.errors import ConfigError
 from vlm_vpr_ros.geodesy import latlon_to_unit, unit_to_latlon
-from vlm_vpr_ros.maps.partition import Partition
+from vlm_vpr_ros.maps.partition import Partition, kmeans_positions
 
 log = logging.getLogger(__name__)
-
-
-def kmeans_xyz(xyz: np.ndarray, k: int, seed: int = 0, fit_max: int = 200_000) -> np.ndarray:
-    """Labels of K-means on unit vectors; fitted on at most ``fit_max`` points (then every
-    point is assigned to its nearest centre), so 4.1M positions cluster in seconds."""
-    from sklearn.cluster import KMeans
-
-    rng = np.random.default_rng(seed)
-    fit = xyz if len(xyz) <= fit_max else xyz[rng.choice(len(xyz), fit_max, replace=False)]
-    km = KMeans(n_clusters=k, n_init=2, random_state=seed).fit(fit)
-    if fit is xyz:
-        return km.labels_.astype(np.int64)
-    return km.predict(xyz).astype(np.int64)
 
 
 def bisect(members: np.ndarray, xyz: np.ndarray, cap: int) -> list[np.ndarray]:
@@ -71,7 +58,7 @@ def split_large(part: Partition, lat: np.ndarray, lon: np.ndarray, cap: int | No
             groups.append(name)
             cents.append(tuple(part.centroids[k]))
             continue
-        sub = kmeans_xyz(xyz[sel], pieces, seed)
+        sub, _ = kmeans_positions(xyz[sel], pieces, seed, n_init=2)
         parts = []
         for j in range(pieces):  # K-means pieces of a dense city can still exceed the cap:
             parts += bisect(sel[sub == j], xyz, cap)  # halve those along their widest axis

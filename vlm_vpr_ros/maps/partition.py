@@ -56,28 +56,39 @@ def partition_country(lat: np.ndarray, lon: np.ndarray) -> Partition:
     return Partition("country", labels, names, _centroids(lat, lon, labels, len(names)))
 
 
+def kmeans_positions(xyz: np.ndarray, k: int, seed: int = 0, n_init: int = 4,
+                     fit_max: int = FIT_MAX) -> tuple[np.ndarray, np.ndarray]:
+    """(labels int64, centres) of K-means on unit vectors (positions, :func:`latlon_to_unit`):
+    fitted on a seeded sample of at most ``fit_max`` of them, then every point assigned to its
+    nearest centre, so 4.1M positions cluster in seconds. K is clamped to the number of
+    distinct points of the sample (KMeans needs at least K); empty clusters are possible
+    (the caller drops them). The one K-means of the map partitions: :func:`partition_kmeans`
+    and the balanced split (:mod:`vlm_vpr_ros.mapping.balance`)."""
+    from sklearn.cluster import KMeans
+
+    fit = xyz
+    if len(xyz) > fit_max:
+        fit = xyz[np.random.default_rng(seed).choice(len(xyz), fit_max, replace=False)]
+    n_distinct = len(np.unique(np.round(fit, 9), axis=0))
+    k_used = max(1, min(int(k), n_distinct))
+    if k_used < k:
+        log.info("kmeans: K clamped from %d to %d (distinct positions)", k, k_used)
+    km = KMeans(n_clusters=k_used, n_init=n_init, random_state=seed).fit(fit)
+    labels = km.labels_ if fit is xyz else km.predict(xyz)
+    return labels.astype(np.int64), km.cluster_centers_
+
+
 def partition_kmeans(lat: np.ndarray, lon: np.ndarray, clusters: int = 100,
                      seed: int = 0) -> Partition:
     """K-means on the positions (as unit vectors, so clusters may span the antimeridian).
     K is clamped to the number of distinct positions; empty clusters are dropped."""
-    from sklearn.cluster import KMeans
-
-    xyz = latlon_to_unit(lat, lon)
-    # planet-scale maps: fit on a sample of FIT_MAX positions, then assign every position
-    fit = xyz
-    if len(xyz) > FIT_MAX:
-        fit = xyz[np.random.default_rng(seed).choice(len(xyz), FIT_MAX, replace=False)]
-    n_distinct = len(np.unique(np.round(fit, 9), axis=0))
-    k = max(1, min(int(clusters), n_distinct))
-    if k < clusters:
-        log.info("kmeans: K clamped from %d to %d (distinct positions)", clusters, k)
-    km = KMeans(n_clusters=k, n_init=4, random_state=seed).fit(fit)
-    raw = km.labels_ if fit is xyz else km.predict(xyz)
+    raw, centers = kmeans_positions(latlon_to_unit(lat, lon), clusters, seed)
+    k = len(centers)
     used = np.unique(raw)
     remap = np.full(k, -1, dtype=np.int64)
     remap[used] = np.arange(len(used))
     labels = remap[raw].astype(np.int64)
-    cla, clo = unit_to_latlon(km.cluster_centers_[used])
+    cla, clo = unit_to_latlon(centers[used])
     names = [f"k{i:03d}" for i in range(len(used))]
     return Partition("kmeans", labels, names, np.stack([cla, clo], 1),
                      {"clusters": int(clusters), "effective_clusters": len(used), "seed": seed})

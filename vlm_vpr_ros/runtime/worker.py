@@ -7,7 +7,8 @@ counted). One worker thread takes frames when a query is due — every ``min_per
 :mod:`vlm_vpr_ros.runtime.relocalize`) — decodes the frame, starts the prior request
 (asynchronous, see :mod:`vlm_vpr_ros.priors.provider`), computes the descriptor meanwhile, waits
 for the prior at most ``prior_timeout_s``, localizes (flagged global retrieval when the prior
-failed) and hands a :class:`QueryOutcome` to ``on_outcome``. Nothing here queues more than one frame and one pending relocalization per kind.
+failed) and hands a :class:`QueryOutcome` to ``on_outcome``. Nothing here queues more than one
+frame and one pending relocalization per kind.
 
 Runtime tuning: :meth:`QueryRuntime.update` swaps the rate/timeout settings and the localizer's
 per-query settings (``top_p`` ...); the next query uses them, a running query keeps its own.
@@ -259,9 +260,6 @@ class QueryRuntime:
             self.provider.close()
 
     # -- worker -----
-    def _fresh(self, frame: Frame | None, now: float) -> bool:
-        return frame is not None and now - frame.received <= self.config.max_frame_age_s
-
     def _relocalize_job(self, now: float) -> tuple[Frame, list[RelocalizeTicket]] | None:
         """The frame for the oldest pending request and every pending request of the same
         prior setting that this frame also answers; None: wait for a frame (caller holds

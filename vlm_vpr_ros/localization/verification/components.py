@@ -12,7 +12,7 @@ from __future__ import annotations
 import abc
 import importlib
 from dataclasses import dataclass
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
@@ -62,11 +62,6 @@ class Matcher(abc.ABC):
     def match(self, prepared: Any, query: LocalFeatures,
               ref: LocalFeatures) -> np.ndarray:
         """(m, 2) int array of (query row, reference row) pairs."""
-
-    def match_many(self, query: LocalFeatures,
-                   refs: Sequence[LocalFeatures]) -> list[np.ndarray]:
-        prepared = self.prepare(query)
-        return [self.match(prepared, query, r) for r in refs]
 
 
 @dataclass(frozen=True)
