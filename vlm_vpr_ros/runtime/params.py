@@ -115,6 +115,9 @@ class NodeConfig:
     fix_max_sigma_m: float = _p(50.0, "STATUS_FIX only when the fix's calibrated per-axis "
                                       "sigma is at most this (m); else STATUS_NO_FIX", 0.001,
                                 MAX_SIGMA_M, writable=True)
+    fix_alert_limit_m: float = _p(50.0, "STATUS_FIX only when the answer's protection level "
+                                        "(m, integrity risk 1e-3) is below this alert limit",
+                                  0.001, MAX_SIGMA_M, writable=True)
     trust_prior_for_fix: bool = _p(False, "an answer decisive only because the prior removed "
                                           "far look-alikes (prior_resolved) may be STATUS_FIX",
                                    writable=True)
@@ -183,7 +186,8 @@ class NodeConfig:
     def status_policy(self) -> StatusPolicy:
         return StatusPolicy(self.fix_min_p_correct, self.fix_max_sigma_m,
                             self.trust_prior_for_fix, self.trust_operator_prior,
-                            self.fallback_status, self.fallback_min_sigma_m)
+                            self.fallback_status, self.fallback_min_sigma_m,
+                            self.fix_alert_limit_m)
 
     def localizer_config(self) -> LocalizerConfig:
         return LocalizerConfig(top_p=self.top_p, fusion=self.fusion,

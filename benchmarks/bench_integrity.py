@@ -1,0 +1,130 @@
+#!/usr/bin/env python3
+"""Integrity of STATUS_FIX at robot resolutions (issue 27, docs/verification.md section 7):
+SF night (../shared/data/sf_night: 332 references, 34 night queries), the map's verification
+calibrated by leave-one-out on its references only (full size only, as before, and the four
+query conditions: the cost of both is measured), then the 34 queries at full size, fitted
+inside 640×480 and 480×360 and JPEG q40 at 640×480, with no prior and with a city-centre prior.
+Prints target vs measured: fixes more than 50 m off, HMI (error > protection level while FIX),
+fix counts, the median protection level of fixes, per-query latency.
+
+The queries are never used to choose anything: the thresholds and the calibration come from
+the references only.
+
+    .venv/bin/python benchmarks/bench_integrity.py --map DIR [--build] [--save RECORDS.pkl]
+"""
+
+from __future__ import annotations
+
+import argparse
+import pickle
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from vlm_vpr_ros.files.images import load_image  # noqa: E402
+from vlm_vpr_ros.geodesy import haversine_km  # noqa: E402
+from vlm_vpr_ros.localization.pipeline import LocalizationPipeline  # noqa: E402
+from vlm_vpr_ros.localization.verification.conditions import parse_condition  # noqa: E402
+from vlm_vpr_ros.maps.build_images import read_coords_csv  # noqa: E402
+from vlm_vpr_ros.priors.base import Prior, PriorResult  # noqa: E402
+
+SF = REPO.parent.parent / "shared" / "data" / "sf_night"
+CITY_CENTRE = (37.7749, -122.4194)
+QUERY_CONDITIONS = ("full", "fit640x480", "fit480x360", "jpeg40_640x480")
+
+
+def calibrate(map_dir: Path, root: Path, conditions: str) -> float:
+    """Recalibrate the map's verification under ``conditions``; seconds."""
+    from vlm_vpr_ros.localization.verification.build import calibrate_map
+    from vlm_vpr_ros.maps.reference_map import ReferenceMap
+
+    t0 = time.monotonic()
+    doc = calibrate_map(ReferenceMap.load(map_dir), conditions=conditions,
+                        images_dir=root / "database")
+    dt = time.monotonic() - t0
+    loo = doc["loo"]
+    print(f"calibration {conditions}: {loo['queries']} leave-one-out queries, {loo['wrong']} "
+          f"wrong / {loo['right']} right, residual {doc['protection']['residual_m']} m, "
+          f"smallest frame {doc['min_long_side_px']} px, {dt:.1f} s")
+    for c, v in doc["per_condition"].items():
+        print(f"    {c:<16} {v}")
+    return dt
+
+
+def run_queries(map_dir: Path, root: Path, records: dict) -> dict:
+    pipe = LocalizationPipeline.open(map_dir)
+    queries = read_coords_csv(root / "queries.csv")
+    out = {}
+    for cname in QUERY_CONDITIONS:
+        cond = parse_condition(cname)
+        for pname, prior in (("no prior", None), ("city-centre prior", CITY_CENTRE)):
+            rows, ms = [], []
+            for f, la, lo in queries:
+                image = cond.apply(load_image(root / f))
+                pr = None if prior is None else PriorResult(Prior(*prior, "test"), "test")
+                t0 = time.perf_counter()
+                h = pipe.localize_image(image, pr)
+                ms.append((time.perf_counter() - t0) * 1e3)
+                err = float(haversine_km(la, lo, h.lat, h.lon)) * 1000.0
+                rows.append((err, h.status, h.protection_m, h.p_correct, h.status_reason))
+                records.setdefault("queries", []).append(
+                    (cname, pname, f, la, lo, [(c.lat, c.lon, c.inliers)
+                                               for c in h.candidates[:40]],
+                     err, h.status, h.protection_m, h.p_correct, h.inlier_ratio))
+            out[(cname, pname)] = (rows, statistics.median(ms))
+    return out
+
+
+def report(res: dict) -> bool:
+    ok = True
+    print("\n| condition | prior | fixes | fixes > 50 m off | HMI | median PL of fixes (m) "
+          "| fix errors (m) | median ms |")
+    print("|---|---|---|---|---|---|---|---|")
+    pls = []
+    for (cname, pname), (rows, ms) in res.items():
+        fixes = [r for r in rows if r[1] == "fix"]
+        bad = sum(r[0] > 50 for r in fixes)
+        hmi = sum(r[0] > r[2] for r in fixes)
+        pls += [r[2] for r in fixes]
+        med = f"{statistics.median([r[2] for r in fixes]):.0f}" if fixes else "-"
+        errs = sorted(round(r[0]) for r in fixes)
+        print(f"| {cname} | {pname} | {len(fixes)} | {bad} | {hmi} | {med} | {errs} | {ms:.0f} |")
+        need = 8 if cname == "full" else 7 if cname == "fit640x480" else 0
+        ok &= bad == 0 and hmi == 0 and len(fixes) >= need
+    med = statistics.median(pls) if pls else float("nan")
+    print(f"\nmedian protection level of all fixes {med:.1f} m (target <= 40)")
+    return ok and med <= 40
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--map", required=True, type=Path)
+    ap.add_argument("--data", type=Path, default=SF)
+    ap.add_argument("--no-calibrate", action="store_true", help="use the map's calibration")
+    ap.add_argument("--save", type=Path, help="pickle the per-query records here")
+    args = ap.parse_args()
+    if not (args.data / "queries.csv").is_file():
+        print(f"{args.data}: no SF night data; nothing measured")
+        return 0
+    if not args.no_calibrate:
+        t1 = calibrate(args.map, args.data, "full")
+        t4 = calibrate(args.map, args.data, ",".join(QUERY_CONDITIONS))
+        print(f"calibration cost: four conditions {t4:.1f} s vs full size only {t1:.1f} s "
+              f"= {t4 / t1:.2f}x (target <= 3x)")
+    records: dict = {}
+    res = run_queries(args.map, args.data, records)
+    ok = report(res)
+    if args.save:
+        args.save.write_bytes(pickle.dumps(records))
+    print("targets met" if ok else "TARGETS NOT MET")
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
