@@ -117,3 +117,43 @@ def test_calibration_doc_counts_conditions_and_both_versions_load():
         validate(broken, "t")
     with pytest.raises(MapError, match="conditions"):
         validate(dict(doc, conditions=[]), "t")
+
+
+# -- issue 28: no verified evidence, honest radii ---------------------------------------------
+def test_no_evidence_on_a_map_with_one_picture_twice_claims_no_small_radius(demo_data, tmp_path):
+    """A map holding one picture twice at one place has leave-one-out pairs, so its posterior
+    radii count as calibrated (25 m floor): a frame without a single inlier against any
+    candidate (32x32, 8000x100, 10x4000) must get the candidates' spread as its radii, not
+    25 m, and no protection level below the alert limit."""
+    import csv
+    import shutil
+
+    from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
+    from vlm_vpr_ros.localization.verification.status import horizontal_sigma
+    from vlm_vpr_ros.maps.build_images import build_map
+
+    rows = list(csv.DictReader(open(demo_data / "coords.csv")))[:12]
+    img = tmp_path / "img"
+    img.mkdir()
+    for r in rows:
+        shutil.copy(demo_data / "images" / r["file"], img / r["file"])
+    twin = "twin_" + rows[0]["file"]
+    shutil.copy(demo_data / "images" / rows[0]["file"], img / twin)
+    lines = [f"{r['file']},{r['lat']},{r['lon']}" for r in rows]
+    lines.append(f"{twin},{rows[0]['lat']},{rows[0]['lon']}")  # the same picture, same place
+    (tmp_path / "c.csv").write_text("file,lat,lon\n" + "\n".join(lines) + "\n")
+    build_map(img, tmp_path / "c.csv", tmp_path / "map", descriptor="vlad_rootsift_fast",
+              partition="kmeans", clusters=2, progress=False,
+              calibration_conditions="full,fit480x360")
+    pipe = LocalizationPipeline.open(tmp_path / "map")
+    assert not pipe.localizer.calibration_source.startswith("none")  # "calibrated" radii
+    assert pipe.verifier.model.conditions == ("full", "fit480x360")
+    rng = np.random.default_rng(3)
+    for shape in ((32, 32, 3), (100, 8000, 3), (4000, 10, 3)):
+        frame = rng.integers(0, 256, shape).astype(np.uint8)
+        h = pipe.localize_image(frame)
+        assert h.status == "no_fix" and h.inliers <= 12, shape
+        far = sorted(haversine_km(h.lat, h.lon, c.lat, c.lon) * 1000 for c in h.candidates[:20])
+        assert h.uncertainty_m >= far[int(np.ceil(0.68 * len(far))) - 1] - 1e-6, shape
+        assert h.radius95_m > 1e5 and horizontal_sigma(h) > 1e4, (shape, h.radius95_m)
+        assert not (h.protection_m < 50.0), (shape, h.protection_m)
