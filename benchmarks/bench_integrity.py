@@ -46,7 +46,7 @@ def calibrate(map_dir: Path, root: Path, conditions: str) -> float:
 
     t0 = time.monotonic()
     doc = calibrate_map(ReferenceMap.load(map_dir), conditions=conditions,
-                        images_dir=root / "database")
+                        images_dir=root)
     dt = time.monotonic() - t0
     loo = doc["loo"]
     print(f"calibration {conditions}: {loo['queries']} leave-one-out queries, {loo['wrong']} "
