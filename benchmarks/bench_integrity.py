@@ -57,6 +57,89 @@ def calibrate(map_dir: Path, root: Path, conditions: str) -> float:
     return dt
 
 
+def study(map_dir: Path, root: Path, per_condition: int) -> None:
+    """Leave-one-out under the four conditions with ``per_condition`` degraded queries each:
+    fix-grade answers and those more than 50 m off, split by whether the query's place is in
+    the map (another reference within 25 m), per threshold; and the two decision-rule
+    variants of issue 27, each calibrated on the same leave-one-out answers."""
+    import vlm_vpr_ros.localization.verification.calibration as cal
+    from vlm_vpr_ros.localization.verification.build import calibrate_map
+    from vlm_vpr_ros.maps.reference_map import ReferenceMap
+
+    grab: dict = {}
+    orig = cal.calibration_doc
+
+    def keep(records, coords, *a, **k):
+        grab["records"], grab["coords"] = list(records), np.asarray(coords)
+        return orig(records, coords, *a, **k)
+
+    cal.calibration_doc = keep
+    try:
+        calibrate_map(ReferenceMap.load(map_dir), conditions=",".join(QUERY_CONDITIONS),
+                      images_dir=root, degraded_queries=per_condition)
+    finally:
+        cal.calibration_doc = orig
+    rows = [_loo_row(grab["coords"], *r) for r in grab["records"]]
+    wrong = [r for r in rows if r["err"] > 25]
+    p = {v: _conformal([r[v] for r in wrong]) for v in ("ratio", "a", "b")}
+    comb = _conformal([max(p["ratio"](r["ratio"]), p["b"](r["b"])) for r in wrong], cap=False)
+    pv = {"ratio": lambda r: p["ratio"](r["ratio"]), "a: competitor > 50 m": lambda r:
+          p["a"](r["a"]), "b: ratio or consensus": lambda r: comb(max(p["ratio"](r["ratio"]),
+                                                                      p["b"](r["b"])))}
+    print(f"\nleave-one-out study: {len(rows)} queries ({per_condition} per degraded "
+          f"condition), {len(wrong)} wrong")
+    print("| threshold | fix-grade, place in the map (>50 m off) | fix-grade, place not in the "
+          "map (>50 m off) |\n|---|---|---|")
+    for t in (0.95, 0.98, 0.99, 0.995, 0.999):
+        cells = []
+        for mapped in (True, False):
+            sel = [r for r in rows if r["mapped"] == mapped and r["fixable"]
+                   and pv["ratio"](r) >= t]
+            cells.append(f"{len(sel)} ({sum(r['err'] > 50 for r in sel)})")
+        print(f"| {t} | {cells[0]} | {cells[1]} |")
+    print("\ndecision rules (fix-grade / >50 m off / error > protection, per condition):")
+    for name, f in pv.items():
+        for t in (0.95, 0.99):
+            out = []
+            for c in QUERY_CONDITIONS:
+                sel = [r for r in rows if r["cond"] == c and r["fixable"] and f(r) >= t
+                       and r["spread"] + 25 < 50]
+                out.append(f"{c} {len(sel)}/{sum(r['err'] > 50 for r in sel)}/"
+                           f"{sum(r['err'] > r['spread'] + 25 for r in sel)}")
+            print(f"  {name:<24} {t}: " + ", ".join(out))
+
+
+def _conformal(null, cap: bool = True):
+    """p_correct of a score from wrong answers' scores (near-tie cap for ratio-like scores)."""
+    null = np.sort(np.asarray(null, np.float64))
+
+    def p(x: float) -> float:
+        v = 1 - (1 + len(null) - np.searchsorted(null, x, side="left")) / (1 + len(null))
+        return min(v, x / (1 + x)) if cap and x < 2 else v
+    return p
+
+
+def _loo_row(coords, cond, qi, cand, inl) -> dict:
+    from vlm_vpr_ros.localization.verification.calibration import support_spread_m
+    from vlm_vpr_ros.localization.verification.evidence import weigh
+
+    lat, lon = coords[cand, 0], coords[cand, 1]
+    ev = weigh(lat, lon, inl, None)
+    w = ev.winner
+    d = np.atleast_1d(haversine_km(lat[w], lon[w], lat, lon)) * 1000
+    far = d > 50
+    a = ev.winner_inliers / (1 + max(12, int(inl[far].max()) if far.any() else 0))
+    good = np.where(inl > 12, inl, 0)
+    cons = np.array([good[np.atleast_1d(haversine_km(lat[i], lon[i], lat, lon)) * 1000 <= 25]
+                     .sum() for i in range(len(inl))])
+    b = cons[w] / (1 + max(12, int(cons[d > 25].max()) if (d > 25).any() else 0))
+    to_all = np.atleast_1d(haversine_km(coords[qi, 0], coords[qi, 1], coords[:, 0],
+                                        coords[:, 1])) * 1000
+    return {"cond": cond, "ratio": ev.score, "a": a, "b": b, "err": float(to_all[cand[w]]),
+            "spread": support_spread_m(lat, lon, inl, w, 12),
+            "mapped": int((to_all <= 25).sum()) > 1, "fixable": ev.winner_inliers > 12}
+
+
 def run_queries(map_dir: Path, root: Path, records: dict) -> dict:
     pipe = LocalizationPipeline.open(map_dir)
     queries = read_coords_csv(root / "queries.csv")
@@ -108,10 +191,14 @@ def main() -> int:
     ap.add_argument("--data", type=Path, default=SF)
     ap.add_argument("--no-calibrate", action="store_true", help="use the map's calibration")
     ap.add_argument("--save", type=Path, help="pickle the per-query records here")
+    ap.add_argument("--study", type=int, default=0, metavar="N",
+                    help="first a leave-one-out study with N degraded queries per condition")
     args = ap.parse_args()
     if not (args.data / "queries.csv").is_file():
         print(f"{args.data}: no SF night data; nothing measured")
         return 0
+    if args.study:
+        study(args.map, args.data, args.study)
     if not args.no_calibrate:
         t1 = calibrate(args.map, args.data, "full")
         t4 = calibrate(args.map, args.data, ",".join(QUERY_CONDITIONS))

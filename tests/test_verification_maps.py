@@ -67,10 +67,16 @@ def test_builder_stores_features_equal_to_a_fresh_extraction(demo_map, demo_data
         got = store.get(sub.id, j)
         assert np.array_equal(got.descriptors, fresh.descriptors)
         assert np.allclose(got.keypoints, fresh.keypoints, atol=0.25)  # fp16 coordinates
-    # leave-one-out: 71 references, none within 25 m of another -> only wrong answers
+    # leave-one-out: 71 references, none within 25 m of another -> only wrong answers; each
+    # reference a query under each of the four default conditions (docs/verification.md)
+    from vlm_vpr_ros.localization.verification.conditions import DEFAULT_CONDITIONS
+
     doc = json.loads((demo_map / man["verification_calibration"]).read_text())
-    assert doc["loo"]["queries"] == 71 and doc["loo"]["right"] == 0
-    assert len(doc["null_scores"]) == 71
+    assert doc["version"] == 2 and doc["conditions"] == list(DEFAULT_CONDITIONS)
+    assert all(doc["per_condition"][c]["queries"] == 71 for c in DEFAULT_CONDITIONS)
+    assert doc["loo"]["queries"] == 4 * 71 and doc["loo"]["right"] == 0
+    assert len(doc["null_scores"]) == 4 * 71
+    assert 0 < doc["min_long_side_px"] <= 480  # the smallest frame: fitted inside 480x360
     from vlm_vpr_ros.cli.map import map_info
 
     info = map_info(demo_map)["local_features"]

@@ -85,8 +85,8 @@ def add_verification_args(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--verification-required", action="store_true",
                    help="exit 2 when the map has no usable local features (default: warn, "
                         "answers unverified)")
-    g.add_argument("--fix-min-p-correct", type=float, default=0.95, metavar="P",
-                   help="status 'fix' needs p_correct >= P (default 0.95)")
+    g.add_argument("--fix-min-p-correct", type=float, default=0.99, metavar="P",
+                   help="status 'fix' needs p_correct >= P (default 0.99)")
     g.add_argument("--fix-max-sigma-m", type=float, default=50.0, metavar="M",
                    help="... and a per-axis sigma <= M metres (default 50)")
     g.add_argument("--fix-alert-limit-m", type=float, default=50.0, metavar="M",

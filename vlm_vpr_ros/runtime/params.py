@@ -109,7 +109,7 @@ class NodeConfig:
     verification_required: bool = _p(False, "a map without usable local features (and no "
                                             "reference_images_dir) fails configure; false: "
                                             "a warning and unverified answers")
-    fix_min_p_correct: float = _p(0.95, "STATUS_FIX only when the verified answer's p_correct "
+    fix_min_p_correct: float = _p(0.99, "STATUS_FIX only when the verified answer's p_correct "
                                         "(calibrated probability of being within 25 m) is at "
                                         "least this", 0.5, 1.0, writable=True)
     fix_max_sigma_m: float = _p(50.0, "STATUS_FIX only when the fix's calibrated per-axis "

@@ -236,7 +236,17 @@ def calibration_doc(records: Sequence[LooRecord], coords: np.ndarray, top_k: int
     coords = np.asarray(coords, np.float64)
     wrong, right_err, per = [], [], {c: {"queries": 0, "wrong": 0, "right": 0}
                                      for c in conditions}
-    graded = []  # (score, error m, support spread m) of every answer above the noise level
+    graded = []  # (score, error m, support spread m, place in the map) above the noise level
+    xyz = latlon_to_unit(coords[:, 0], coords[:, 1]) if len(coords) else np.zeros((0, 3))
+    cos_r = math.cos(cfg.place_radius_m / 1000.0 / EARTH_RADIUS_KM)
+    in_map: dict[int, bool] = {}
+
+    def mapped(qi: int) -> bool:
+        """Whether another reference lies within the place radius of reference ``qi``."""
+        if qi not in in_map:
+            near = (xyz @ xyz[qi]) >= cos_r
+            in_map[qi] = int(near.sum()) > 1
+        return in_map[qi]
     for cond, qi, cand, inl in records:
         lat, lon = coords[cand, 0], coords[cand, 1]
         ev = weigh(lat, lon, inl, None, cfg)
@@ -253,7 +263,7 @@ def calibration_doc(records: Sequence[LooRecord], coords: np.ndarray, top_k: int
             pc["wrong"] += 1
         if ev.winner_inliers > cfg.competitor_floor:
             graded.append((float(ev.score), err, support_spread_m(
-                lat, lon, inl, ev.winner, cfg.competitor_floor)))
+                lat, lon, inl, ev.winner, cfg.competitor_floor), mapped(qi)))
     model = PCorrect(np.sort(np.asarray(wrong, np.float64)), cfg.place_radius_m)
     residual, n_fix = protection_residual(model, graded, cfg.place_radius_m)
     return {"format": VERIFY_CAL_FORMAT, "version": VERIFY_CAL_VERSION,
@@ -268,15 +278,15 @@ def calibration_doc(records: Sequence[LooRecord], coords: np.ndarray, top_k: int
                     "seconds": round(seconds, 1)}}
 
 
-def protection_residual(model: PCorrect, graded: Sequence[tuple[float, float, float]],
+def protection_residual(model: PCorrect, graded: Sequence[tuple[float, float, float, bool]],
                         place_radius_m: float, level: float = 0.95) -> tuple[float, int]:
     """(residual m, answers it rests on): what the protection level adds to the support
-    spread. Among the leave-one-out answers at ``p_correct >= level`` that are right (within
-    the place radius: the wrong ones are bounded by the threshold, not by the radius), the
-    largest ``error - spread``; at least the place radius (a right answer is anywhere within
-    it of the truth)."""
-    res = [e - s for sc, e, s in graded
-           if model.p_correct(sc) >= level and e <= place_radius_m]
+    spread. Among the leave-one-out answers at ``p_correct >= level`` whose query place is in
+    the map (another reference within the place radius of it), the largest ``error - spread``,
+    at least the place radius (a right answer is anywhere within it of the truth). Answers at
+    places the map does not cover (a landmark seen from a mapped place 60-500 m away) are no
+    matter of the radius: the threshold bounds them (docs/verification.md section 3)."""
+    res = [e - s for sc, e, s, mapped in graded if mapped and model.p_correct(sc) >= level]
     return max([place_radius_m] + res), len(res)
 
 

@@ -40,7 +40,7 @@ K_RISK = math.sqrt(-2.0 * math.log(1e-3))
 
 @dataclass(frozen=True)
 class StatusPolicy:
-    fix_min_p_correct: float = 0.95
+    fix_min_p_correct: float = 0.99
     fix_max_sigma_m: float = 50.0
     trust_prior_for_fix: bool = False  # prior_resolved answers may be fixes (any prior)
     trust_operator_prior: bool = False  # ... when the prior carries its own sigma_km
