@@ -37,7 +37,7 @@ NO_FEATURES = ("none", "")
 LOO_QUERIES = 400
 #: references queried under each degraded condition (bounds the extra cost: one image decode,
 #: one SIFT pass per condition and ~20 matches each)
-DEGRADED_QUERIES = 80
+DEGRADED_QUERIES = 60
 
 
 class ReferenceExtractor:
