@@ -120,14 +120,19 @@ def test_calibration_doc_counts_conditions_and_both_versions_load():
 
 
 # -- issue 28: no verified evidence, honest radii ---------------------------------------------
-def test_no_evidence_on_a_map_with_one_picture_twice_claims_no_small_radius(demo_data, tmp_path):
+def test_no_evidence_on_a_map_with_one_picture_twice_claims_no_small_radius(demo_data, tmp_path,
+                                                                          caplog):
     """A map holding one picture twice at one place has leave-one-out pairs, so its posterior
     radii count as calibrated (25 m floor): a frame without a single inlier against any
     candidate (32x32, 8000x100, 10x4000) must get the candidates' spread as its radii, not
-    25 m, and no protection level below the alert limit."""
+    25 m, and no protection level below the alert limit. On the same map: frames smaller than
+    the calibration covered are flagged (warned once); a version-1 calibration still answers."""
     import csv
     import shutil
 
+    import cv2
+
+    from vlm_vpr_ros.files.images import load_image
     from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
     from vlm_vpr_ros.localization.verification.status import horizontal_sigma
     from vlm_vpr_ros.maps.build_images import build_map
@@ -186,3 +191,32 @@ def test_node_refuses_a_bad_alert_limit(bad, tmp_path):
         from_params({"map_dir": str(tmp_path), "fix_alert_limit_m": bad})
     cfg = from_params({"map_dir": str(tmp_path), "fix_alert_limit_m": 30.0})
     assert cfg.status_policy().fix_alert_limit_m == 30.0
+    # frames smaller than the calibration covered: flagged, warned once
+    import logging
+
+    side = pipe.verifier.model.min_long_side_px
+    assert 0 < side <= 480
+    image = load_image(img / rows[1]["file"])
+    scale = (side - 40) / max(image.shape[:2])
+    small = cv2.resize(image, (round(image.shape[1] * scale), round(image.shape[0] * scale)),
+                       interpolation=cv2.INTER_AREA)
+    with caplog.at_level(logging.WARNING):
+        flags = [pipe.localize_image(small).flags for _ in range(2)]
+    assert all("uncalibrated_conditions" in f for f in flags)
+    assert caplog.text.count("smaller than the verification calibration covered") == 1
+    assert "uncalibrated_conditions" not in pipe.localize_image(image).flags
+    # a map calibrated before query conditions existed (version 1) opens and answers as
+    # before, every verified answer flagged uncalibrated_conditions
+    from vlm_vpr_ros.localization.verification.calibration import load_doc, save_doc
+    from vlm_vpr_ros.maps.reference_map import ReferenceMap
+
+    ref_map = ReferenceMap.load(tmp_path / "map")
+    doc = load_doc(ref_map)
+    old = {k: v for k, v in doc.items()
+           if k not in ("conditions", "protection", "min_long_side_px", "per_condition")}
+    save_doc(ref_map, {**old, "version": 1})
+    v1 = LocalizationPipeline.open(tmp_path / "map")
+    assert v1.verifier.model.calibrated and v1.verifier.model.conditions == ()
+    h = v1.localize_image(image)
+    assert h.verification == "verified" and "uncalibrated_conditions" in h.flags
+    assert h.ref_id == rows[1]["file"] and math.isfinite(h.protection_m)

@@ -15,6 +15,13 @@ ones, ``P(p_correct >= 0.95) <= 5 %``: the threshold bounds the false-fix rate a
 answers, whatever the share of right ones. It never claims what it has not seen: with fewer
 than 19 wrong answers no score reaches 0.95, and an uncalibrated map gives NaN (never a fix).
 
+Query conditions (:mod:`.conditions`): besides the stored references (``full``), degraded
+copies of reference images (fitted inside 640×480 / 480×360, JPEG q40) are queries too, so that
+the wrong answers cover the frames a robot sends; their scores are pooled. The default fix
+threshold 0.99 needs >= 99 wrong answers; the degraded copies supply them on small maps
+(docs/verification.md section 2). The document (version 2) also holds the protection level's
+residual (:func:`protection_residual`); version 1 files (full size only) still load.
+
 ``vlm-vpr calibrate`` adds the wrong answers among a user's labelled queries (real queries of
 the deployment: the most relevant negatives) to the set (the ``user`` section).
 
