@@ -329,9 +329,12 @@ def test_calibrate_adds_the_users_wrong_answers(demo_map, demo_data, tmp_path):
     doc = load_doc(ReferenceMap.load(m))
     assert doc["user"]["null_scores"] == wrong and doc["user"]["queries"] == 12
     model = PCorrect.from_doc(doc)
-    assert len(model.null_scores) == 71 + len(wrong) and "user (12 labelled" in model.source
+    n = 4 * 71  # leave-one-out wrong answers: 71 references under four query conditions
+    assert len(model.null_scores) == n + len(wrong) and "user (12 labelled" in model.source
     # those wrong answers are copies of mapped images (high scores): an answer scoring like the
-    # 4th strongest of them was a fix before (p 1 - 1/72) and is none now (1 - 5/78)
+    # 4th strongest of them was a fix before (p 1 - 1/285) and is none now (1 - 5/291 < 0.99)
     before = PCorrect.from_doc({**doc, "user": None})
-    assert before.p_correct(wrong[-4]) == pytest.approx(1 - 1 / 72)
-    assert model.p_correct(wrong[-4]) == pytest.approx(1 - 5 / 78) and 1 - 5 / 78 < 0.95
+    assert before.p_correct(wrong[-4]) == pytest.approx(1 - 1 / (n + 1)) and \
+        1 - 1 / (n + 1) >= 0.99
+    k = n + len(wrong) + 1
+    assert model.p_correct(wrong[-4]) == pytest.approx(1 - 5 / k) and 1 - 5 / k < 0.99
