@@ -334,7 +334,7 @@ def test_sf_night_verified_fixes_are_right_and_radii_honest(sf, sf_described):
         assert h.status == "no_fix", (name, h.status_reason)
 
 
-# -- integrity at robot resolutions (issue 27, docs/verification.md) -------------------------------
+# -- integrity at robot resolutions (issue 27, docs/verification.md) ------------------------------
 def test_sf_night_integrity_at_robot_resolutions(sf):
     """The 34 queries at full size, fitted inside 640x480 and 480x360 and JPEG q40 at 640x480,
     no prior and a city-centre prior, on the map as built (leave-one-out over the four

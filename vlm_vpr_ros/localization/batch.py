@@ -28,8 +28,8 @@ R = TypeVar("R")
 RESULT_FIELDS = ["file", "lat", "lon", "prior_lat", "prior_lon", "prior_source", "prior_reason",
                  "prior_parse", "submap", "ref_id", "uncertainty_m", "radius95_m", "confidence",
                  "fusion", "n_candidates", "flags", "status", "p_correct", "inliers",
-                 "inlier_ratio", "protection_m", "descriptor_ms", "retrieval_ms", "rerank_ms", "verify_ms",
-                 "prior_latency_s", "top_ids", "top_positions"]
+                 "inlier_ratio", "protection_m", "descriptor_ms", "retrieval_ms", "rerank_ms",
+                 "verify_ms", "prior_latency_s", "top_ids", "top_positions"]
 #: called with (file, image, hypothesis) after each localized query (``--save-matches``)
 OnResult = Callable[[str, np.ndarray, Hypothesis], None]
 
