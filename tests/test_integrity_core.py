@@ -163,34 +163,6 @@ def test_no_evidence_on_a_map_with_one_picture_twice_claims_no_small_radius(demo
         assert h.radius95_m > 1e5 and horizontal_sigma(h) > 1e4, (shape, h.radius95_m)
         assert not (h.protection_m < 50.0), (shape, h.protection_m)
 
-
-@pytest.mark.parametrize("bad", ["nan", "0", "-3", "inf", "abc"])
-def test_cli_refuses_a_bad_alert_limit_with_exit_2(bad, tmp_path, capsys, caplog):
-    from vlm_vpr_ros.cli import main
-
-    (tmp_path / "imgs").mkdir()
-    (tmp_path / "q.csv").write_text("file\na.jpg\n")
-    argv = ["localize", "--map", str(tmp_path / "nomap"), "--images", str(tmp_path / "imgs"),
-            "--queries", str(tmp_path / "q.csv"), "--out", str(tmp_path / "r.csv"),
-            "--prior", "none", "--fix-alert-limit-m", bad]
-    try:
-        rc = main(argv)
-    except SystemExit as exc:  # argparse: not a number
-        rc = exc.code
-    assert rc == 2
-    said = capsys.readouterr().err + caplog.text
-    assert "fix-alert-limit-m" in said.replace("_", "-")
-
-
-@pytest.mark.parametrize("bad", [math.nan, 0.0, -1.0, "50"])
-def test_node_refuses_a_bad_alert_limit(bad, tmp_path):
-    from vlm_vpr_ros.runtime.params import RUNTIME_WRITABLE, from_params
-
-    assert "fix_alert_limit_m" in RUNTIME_WRITABLE
-    with pytest.raises(ConfigError, match="fix_alert_limit_m"):
-        from_params({"map_dir": str(tmp_path), "fix_alert_limit_m": bad})
-    cfg = from_params({"map_dir": str(tmp_path), "fix_alert_limit_m": 30.0})
-    assert cfg.status_policy().fix_alert_limit_m == 30.0
     # frames smaller than the calibration covered: flagged, warned once
     import logging
 
@@ -220,3 +192,31 @@ def test_node_refuses_a_bad_alert_limit(bad, tmp_path):
     h = v1.localize_image(image)
     assert h.verification == "verified" and "uncalibrated_conditions" in h.flags
     assert h.ref_id == rows[1]["file"] and math.isfinite(h.protection_m)
+
+@pytest.mark.parametrize("bad", ["nan", "0", "-3", "inf", "abc"])
+def test_cli_refuses_a_bad_alert_limit_with_exit_2(bad, tmp_path, capsys, caplog):
+    from vlm_vpr_ros.cli import main
+
+    (tmp_path / "imgs").mkdir()
+    (tmp_path / "q.csv").write_text("file\na.jpg\n")
+    argv = ["localize", "--map", str(tmp_path / "nomap"), "--images", str(tmp_path / "imgs"),
+            "--queries", str(tmp_path / "q.csv"), "--out", str(tmp_path / "r.csv"),
+            "--prior", "none", "--fix-alert-limit-m", bad]
+    try:
+        rc = main(argv)
+    except SystemExit as exc:  # argparse: not a number
+        rc = exc.code
+    assert rc == 2
+    said = capsys.readouterr().err + caplog.text
+    assert "fix-alert-limit-m" in said.replace("_", "-")
+
+
+@pytest.mark.parametrize("bad", [math.nan, 0.0, -1.0, "50"])
+def test_node_refuses_a_bad_alert_limit(bad, tmp_path):
+    from vlm_vpr_ros.runtime.params import RUNTIME_WRITABLE, from_params
+
+    assert "fix_alert_limit_m" in RUNTIME_WRITABLE
+    with pytest.raises(ConfigError, match="fix_alert_limit_m"):
+        from_params({"map_dir": str(tmp_path), "fix_alert_limit_m": bad})
+    cfg = from_params({"map_dir": str(tmp_path), "fix_alert_limit_m": 30.0})
+    assert cfg.status_policy().fix_alert_limit_m == 30.0

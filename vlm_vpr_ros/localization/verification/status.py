@@ -4,7 +4,8 @@ the relocalize answer and diagnostics, so they all say the same.
 ``fix`` iff the answer was verified with ``p_correct >= fix_min_p_correct``, its protection
 level is below ``fix_alert_limit_m`` and its per-axis σ is at most ``fix_max_sigma_m``; an
 answer that reaches the threshold only because the prior removed far look-alikes from the
-evidence (``prior_resolved``) is a fix only when the prior is trusted (``trust_prior_for_fix``; ``trust_operator_prior`` for priors that carry their own
+evidence (``prior_resolved``) is a fix only when the prior is trusted
+(``trust_prior_for_fix``; ``trust_operator_prior`` for priors that carry their own
 ``sigma_km``, e.g. an operator's hint through the ``fixed`` provider). docs/verification.md.
 
 Fallback: ``fallback_status="fix"`` publishes the answers failing the rule as ``fix`` too (for
