@@ -192,6 +192,16 @@ def test_no_evidence_on_a_map_with_one_picture_twice_claims_no_small_radius(demo
     h = v1.localize_image(image)
     assert h.verification == "verified" and "uncalibrated_conditions" in h.flags
     assert h.ref_id == rows[1]["file"] and math.isfinite(h.protection_m)
+    # vlm-vpr calibrate --conditions recalibrates it under the query conditions again
+    from vlm_vpr_ros.cli import main
+
+    assert main(["calibrate", "--map", str(tmp_path / "map")]) == 2  # nothing asked
+    assert main(["calibrate", "--map", str(tmp_path / "map"), "--conditions", "fit1x"]) == 2
+    assert main(["calibrate", "--map", str(tmp_path / "map"), "--conditions", "default",
+                 "--reference-images", str(img)]) == 0
+    again = LocalizationPipeline.open(tmp_path / "map")
+    assert again.verifier.model.conditions == tuple(DEFAULT_CONDITIONS)
+    assert "uncalibrated_conditions" not in again.localize_image(image).flags
 
 @pytest.mark.parametrize("bad", ["nan", "0", "-3", "inf", "abc"])
 def test_cli_refuses_a_bad_alert_limit_with_exit_2(bad, tmp_path, capsys, caplog):
