@@ -69,13 +69,15 @@ def test_builder_stores_features_equal_to_a_fresh_extraction(demo_map, demo_data
         assert np.allclose(got.keypoints, fresh.keypoints, atol=0.25)  # fp16 coordinates
     # leave-one-out: 71 references, none within 25 m of another -> only wrong answers; each
     # reference a query under each of the four default conditions (docs/verification.md)
+    from vlm_vpr_ros.localization.verification.build import DEGRADED_QUERIES
     from vlm_vpr_ros.localization.verification.conditions import DEFAULT_CONDITIONS
 
     doc = json.loads((demo_map / man["verification_calibration"]).read_text())
     assert doc["version"] == 2 and doc["conditions"] == list(DEFAULT_CONDITIONS)
-    assert all(doc["per_condition"][c]["queries"] == 71 for c in DEFAULT_CONDITIONS)
-    assert doc["loo"]["queries"] == 4 * 71 and doc["loo"]["right"] == 0
-    assert len(doc["null_scores"]) == 4 * 71
+    per = [doc["per_condition"][c]["queries"] for c in DEFAULT_CONDITIONS]
+    assert per == [71] + [min(71, DEGRADED_QUERIES)] * 3
+    assert doc["loo"]["queries"] == sum(per) and doc["loo"]["right"] == 0
+    assert len(doc["null_scores"]) == sum(per)
     assert 0 < doc["min_long_side_px"] <= 480  # the smallest frame: fitted inside 480x360
     from vlm_vpr_ros.cli.map import map_info
 
@@ -329,10 +331,12 @@ def test_calibrate_adds_the_users_wrong_answers(demo_map, demo_data, tmp_path):
     doc = load_doc(ReferenceMap.load(m))
     assert doc["user"]["null_scores"] == wrong and doc["user"]["queries"] == 12
     model = PCorrect.from_doc(doc)
-    n = 4 * 71  # leave-one-out wrong answers: 71 references under four query conditions
+    from vlm_vpr_ros.localization.verification.build import DEGRADED_QUERIES
+
+    n = 71 + 3 * min(71, DEGRADED_QUERIES)  # leave-one-out wrong answers, four conditions
     assert len(model.null_scores) == n + len(wrong) and "user (12 labelled" in model.source
     # those wrong answers are copies of mapped images (high scores): an answer scoring like the
-    # 4th strongest of them was a fix before (p 1 - 1/285) and is none now (1 - 5/291 < 0.99)
+    # 4th strongest of them was a fix before (p 1 - 1/(n+1)) and is none now (1 - 5/(n+7))
     before = PCorrect.from_doc({**doc, "user": None})
     assert before.p_correct(wrong[-4]) == pytest.approx(1 - 1 / (n + 1)) and \
         1 - 1 / (n + 1) >= 0.99
