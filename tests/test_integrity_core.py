@@ -198,6 +198,8 @@ def test_no_evidence_on_a_map_with_one_picture_twice_claims_no_small_radius(demo
     assert main(["calibrate", "--map", str(tmp_path / "map")]) == 2  # nothing asked
     assert main(["calibrate", "--map", str(tmp_path / "map"), "--conditions", "fit1x"]) == 2
     assert main(["calibrate", "--map", str(tmp_path / "map"), "--conditions", "default",
+                 "--degraded-queries", "0"]) == 2
+    assert main(["calibrate", "--map", str(tmp_path / "map"), "--conditions", "default",
                  "--reference-images", str(img)]) == 0
     again = LocalizationPipeline.open(tmp_path / "map")
     assert again.verifier.model.conditions == tuple(DEFAULT_CONDITIONS)

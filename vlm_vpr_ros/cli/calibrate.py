@@ -47,6 +47,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "docs/verification.md")
     p.add_argument("--reference-images", metavar="DIR", default="",
                    help="the folder the map was built from (for --conditions)")
+    p.add_argument("--degraded-queries", type=int, default=None, metavar="N",
+                   help="references queried under each degraded condition (default 60: the "
+                        "cost bound; more keeps more fixes at the same threshold)")
     p.set_defaults(func=cmd_calibrate)
 
 
@@ -117,6 +120,8 @@ def _calibrate_conditions(args: argparse.Namespace) -> None:
     from vlm_vpr_ros.maps.reference_map import ReferenceMap
 
     spec = None if args.conditions.strip() == "default" else args.conditions
+    if args.degraded_queries is not None and args.degraded_queries < 1:
+        raise DataError(f"--degraded-queries must be >= 1, got {args.degraded_queries}")
     names = [c.name for c in parse_conditions(spec)]
     if args.reference_images and not Path(args.reference_images).is_dir():
         raise DataError(f"--reference-images {args.reference_images}: not a folder")
@@ -125,8 +130,8 @@ def _calibrate_conditions(args: argparse.Namespace) -> None:
         return
     ref_map = ReferenceMap.load(args.map)
     old = load_doc(ref_map)
-    doc = calibrate_map(ref_map, conditions=names,
-                        images_dir=args.reference_images or None)
+    doc = calibrate_map(ref_map, conditions=names, images_dir=args.reference_images or None,
+                        degraded_queries=args.degraded_queries)
     if doc is None:
         raise DataError(f"{args.map}: the map stores no local features: nothing to calibrate")
     if old is not None and old.get("user"):
