@@ -316,7 +316,11 @@ class Verifier:
         r68 = verified_radius(self.model, p_radius, 0.68, fb68, level)
         hyp.uncertainty_m = r68
         hyp.radius95_m = max(r68, verified_radius(self.model, p_radius, 0.95, fb95, level))
-        hyp.protection_m = self._protection(hyp, lat, lon, counts, ev.winner, p_radius, level)
+        support = counts
+        if trust_prior and logp is not None:  # a trusted prior rules out the gated look-alikes
+            gated = logp < logp[ev.winner] - math.log(self.evidence.prior_gate)
+            support = np.where(gated, -1, counts)
+        hyp.protection_m = self._protection(hyp, lat, lon, support, ev.winner, p_radius, level)
         hyp.verification = "verified"
         hyp.flags = tuple(hyp.flags) + ("verified",) + self._condition_flags(query)
         hyp.matches = [matches[i] for i in ev.order]
@@ -327,7 +331,8 @@ class Verifier:
                     counts: np.ndarray, winner: int, p: float, level: float) -> float:
         """The protection level (m) of a verified answer (docs/verification.md section 3):
         for an answer verified at ``p_correct >= level`` the support spread (how far apart the
-        references that verify with substantial inliers are) plus the calibrated residual;
+        references that verify with substantial inliers are; with a trusted prior, not those
+        the prior gate rules out) plus the calibrated residual;
         for any other the larger of that and the 1 - integrity_risk radius of its own
         Gaussian (its radii); NaN on an uncalibrated map (no integrity claim)."""
         from vlm_vpr_ros.localization.verification.status import horizontal_sigma, k_risk
