@@ -326,15 +326,14 @@ class Verifier:
         hyp.matches = [matches[i] for i in ev.order]
         hyp.timings_ms["verify_ms"] = (time.perf_counter() - t0) * 1e3
 
-
     def _protection(self, hyp: Hypothesis, lat: np.ndarray, lon: np.ndarray,
                     counts: np.ndarray, winner: int, p: float, level: float) -> float:
         """The protection level (m) of a verified answer (docs/verification.md section 3):
         for an answer verified at ``p_correct >= level`` the support spread (how far apart the
         references that verify with substantial inliers are; with a trusted prior, not those
-        the prior gate rules out) plus the calibrated residual;
-        for any other the larger of that and the 1 - integrity_risk radius of its own
-        Gaussian (its radii); NaN on an uncalibrated map (no integrity claim)."""
+        the prior gate rules out) plus the calibrated residual; for any other the larger of that
+        and the 1 - integrity_risk radius of its own Gaussian (its radii); NaN on an
+        uncalibrated map (no integrity claim)."""
         from vlm_vpr_ros.localization.verification.status import horizontal_sigma, k_risk
 
         m = self.model
