@@ -7,7 +7,8 @@ Policy (what ``robot_localization``'s navsat_transform expects; docs/verificatio
   diagnostics always agree; an answer without one is judged here by the same rule
   (:func:`vlm_vpr_ros.localization.verification.status.fix_status`):
   ``STATUS_FIX`` only for a *verified* answer with ``p_correct >= fix_min_p_correct`` (default
-  0.95) and per-axis σ <= ``fix_max_sigma_m`` (default 50 m); an answer decisive only because
+  0.95), a protection level below ``fix_alert_limit_m`` (default 50 m) and per-axis σ <=
+  ``fix_max_sigma_m`` (default 50 m); an answer decisive only because
   the prior removed far look-alikes (``prior_resolved``) only when the prior is trusted
   (``trust_prior_for_fix`` / ``trust_operator_prior``). Everything else is ``STATUS_NO_FIX``
   with latitude/longitude still filled so people and loggers see the guess. navsat_transform
@@ -18,8 +19,9 @@ Policy (what ``robot_localization``'s navsat_transform expects; docs/verificatio
   pipeline stamps that decision on the answer (``stamp_status``), so the relocalize answer and
   diagnostics say the same.
 * Covariance: ENU, row-major, m², diagonal ``[σ², σ², σz²]``, ``COVARIANCE_TYPE_APPROXIMATED``,
-  σ = ``max(r68 / 1.5096, r95 / 2.4477)`` of the answer's radii (a verified fix: tens of
-  metres; an unverified answer: the posterior's radius), always finite.
+  σ = ``max(r68 / 1.5096, r95 / 2.4477, PL / 3.717)`` of the answer's radii and its protection
+  level PL (3.717 = sqrt(-2 ln 1e-3): the Gaussian of the covariance holds the PL's 1 - 1e-3;
+  a verified fix: tens of metres; an unverified answer: the posterior's radius), always finite.
 * Altitude: images give none; NaN would make navsat_transform drop every fix, so a configurable
   finite value (default 0 m) with a large vertical σ (default 1000 m) is published.
 * ``status.service`` is 0: no GNSS signal was used.

@@ -16,15 +16,16 @@ from vlm_vpr_ros.priors.provider import Prior, PriorResult
 from vlm_vpr_ros.types import Hypothesis
 
 
-def hyp(sigma=120.0, flags=(), prior=True, r95=float("nan"), p=0.99, p_without=None,
-        sigma_km=None) -> Hypothesis:
+def hyp(sigma=120.0, flags=(), prior=True, r95=float("nan"), p=0.995, p_without=None,
+        sigma_km=None, pl=30.0) -> Hypothesis:
     pr_ = Prior(48.85, 2.35, "fixed", sigma_km) if prior else None
     pr = PriorResult(pr_, "fixed") if prior else PriorResult.failure("openai:x", "timeout")
     return Hypothesis(lat=48.8584, lon=2.2945, ref_id="a.jpg", submap="k003",
                       uncertainty_m=sigma, prior=pr_, prior_result=pr, flags=tuple(flags),
                       radius95_m=r95, p_correct=p,
                       p_correct_without_prior=p if p_without is None else p_without,
-                      verification="verified" if math.isfinite(p) else "")
+                      verification="verified" if math.isfinite(p) else "",
+                      protection_m=pl if math.isfinite(p) else math.nan)
 
 
 def test_good_fix_is_status_fix_with_enu_covariance():
@@ -53,7 +54,8 @@ def test_status_rule_needs_verified_p_correct_and_small_sigma():
     # an unverified answer is never a fix, however small its radius (the lens-cap frame on a
     # map without calibration, issue 18); nor one below fix_min_p_correct
     for h, why in ((hyp(sigma=25.0, p=math.nan), "unverified"),
-                   (hyp(sigma=25.0, p=0.9), "p_correct 0.900 < 0.95")):
+                   (hyp(sigma=25.0, p=0.9), "p_correct 0.900 < 0.99"),
+                   (hyp(sigma=25.0, pl=60.0), "protection 60 m >= alert limit 50 m")):
         g = fix_fields(h)
         assert g.status == STATUS_NO_FIX and not g.precise and g.reason == why
     assert fix_fields(hyp(sigma=25.0, p=0.9), policy(fix_min_p_correct=0.85)).precise
@@ -93,7 +95,7 @@ def test_prior_resolved_answers_are_fixes_only_with_a_trusted_prior():
     assert fix_fields(vlm, policy(trust_operator_prior=True)).status == STATUS_NO_FIX
     assert fix_fields(operator, policy(trust_operator_prior=True)).status == STATUS_FIX
     # decisive without the prior as well: a fix whatever the trust
-    assert fix_fields(hyp(sigma=20.0, p=0.99, p_without=0.97)).status == STATUS_FIX
+    assert fix_fields(hyp(sigma=20.0, p=0.995, p_without=0.992)).status == STATUS_FIX
 
 
 def test_the_pipelines_stamped_status_is_published():

@@ -150,7 +150,8 @@ def test_fallback_fix_says_the_same_everywhere(pipeline, image):
     assert published_by_outputs(out, FixPolicy())[0][1].status.status != STATUS_FIX
     assert [kind for kind, _ in published_by_outputs(out, FixPolicy())] == ["fix"]
     # the same answer stamped by a rule it passes (a precise fix) gets its pose
-    again = dataclasses.replace(h, status="", status_reason="", p_correct=0.99)
+    again = dataclasses.replace(h, status="", status_reason="", p_correct=0.99,
+                                protection_m=30.0)
     out.hypothesis = stamp_status(again, StatusPolicy(fix_max_sigma_m=1e7))
     assert out.hypothesis.status == "fix"
     ok, text = outcome_summary(out, 0.0)

@@ -312,9 +312,11 @@ def test_sf_night_verified_fixes_are_right_and_radii_honest(sf, sf_described):
         halves = [sum(1 for r in res[a:b] if r[1] == "fix") for a, b in ((0, 17), (17, n))]
         r1 = sum(r[0] <= 25 for r in res)
         print(f"  {name:<20} R@1 {r1}/{n} (today {today}); fixes {len(fixes)}/{n} "
-              f"(halves {halves[0]} + {halves[1]}; target >= 8), fix errors m "
-              f"{sorted(round(e) for e in fixes)} (target all <= 50)")
-        assert all(e <= 50 for e in fixes) and len(fixes) >= 8
+              f"(halves {halves[0]} + {halves[1]}; issue 18 target >= 8 at 0.95), fix "
+              f"errors m {sorted(round(e) for e in fixes)} (target all <= 50)")
+        # issue 27: the default threshold is 0.99 (docs/verification.md section 2): 3 of the
+        # former 9 fixes remain at full size (benchmarks/bench_integrity.py); none is wrong
+        assert all(e <= 50 for e in fixes) and len(fixes) >= 2
         assert r1 >= today
         pooled += res
     cov = 100 * sum(r[4] for r in pooled) / len(pooled)
@@ -330,3 +332,43 @@ def test_sf_night_verified_fixes_are_right_and_radii_honest(sf, sf_described):
     for name, frame in featureless_frames().items():
         h = pipe.localize_image(frame)
         assert h.status == "no_fix", (name, h.status_reason)
+
+
+# -- integrity at robot resolutions (issue 27, docs/verification.md) ------------------------------
+def test_sf_night_integrity_at_robot_resolutions(sf):
+    """The 34 queries at full size, fitted inside 640x480 and 480x360 and JPEG q40 at 640x480,
+    no prior and a city-centre prior, on the map as built (leave-one-out over the four
+    conditions on its references only): no fix more than 50 m off and no fix whose error exceeds
+    its protection level (HMI); protection levels of fixes median <= 40 m."""
+    import statistics
+
+    from vlm_vpr_ros.localization.verification.conditions import parse_condition
+    from vlm_vpr_ros.priors.provider import Prior, PriorResult
+
+    root, map_dir = sf
+    pipe = LocalizationPipeline.open(map_dir)
+    assert len(pipe.verifier.model.conditions) == 4
+    queries = read_coords_csv(root / "queries.csv")
+    pls, counts = [], {}
+    for cname in ("full", "fit640x480", "fit480x360", "jpeg40_640x480"):
+        cond = parse_condition(cname)
+        described = [(pipe.describe_query(cond.apply(load_image(root / f))), la, lo)
+                     for f, la, lo in queries]
+        for pname, prior in (("no prior", None), ("city-centre prior", CITY_CENTRE)):
+            fixes = []
+            for q, la, lo in described:
+                pr = None if prior is None else PriorResult(Prior(*prior, "test"), "test")
+                h = pipe.localize_descriptor(q.desc, pr, q.local)
+                if h.status == "fix":
+                    fixes.append((haversine_km(la, lo, h.lat, h.lon) * 1000, h.protection_m))
+            bad = sum(e > 50 for e, _ in fixes)
+            hmi = sum(e > pl for e, pl in fixes)
+            counts[cname, pname] = len(fixes)
+            pls += [pl for _, pl in fixes]
+            print(f"  {cname:<15} {pname:<18} fixes {len(fixes):2d}, > 50 m off {bad}, HMI {hmi}")
+            assert bad == 0 and hmi == 0, (cname, pname, fixes)
+    print(f"  median protection level of fixes {statistics.median(pls):.1f} m (target <= 40)")
+    assert statistics.median(pls) <= 40.0
+    # availability: measured 3 at full size and 3 at 640x480 (targets 8 / 7 not met at 0.99;
+    # docs/verification.md section 7)
+    assert counts["full", "no prior"] >= 2 and counts["fit640x480", "no prior"] >= 2

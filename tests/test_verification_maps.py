@@ -67,10 +67,18 @@ def test_builder_stores_features_equal_to_a_fresh_extraction(demo_map, demo_data
         got = store.get(sub.id, j)
         assert np.array_equal(got.descriptors, fresh.descriptors)
         assert np.allclose(got.keypoints, fresh.keypoints, atol=0.25)  # fp16 coordinates
-    # leave-one-out: 71 references, none within 25 m of another -> only wrong answers
+    # leave-one-out: 71 references, none within 25 m of another -> only wrong answers; each
+    # reference a query under each of the four default conditions (docs/verification.md)
+    from vlm_vpr_ros.mapping.local_features import DEGRADED_QUERIES
+    from vlm_vpr_ros.localization.verification.conditions import DEFAULT_CONDITIONS
+
     doc = json.loads((demo_map / man["verification_calibration"]).read_text())
-    assert doc["loo"]["queries"] == 71 and doc["loo"]["right"] == 0
-    assert len(doc["null_scores"]) == 71
+    assert doc["version"] == 2 and doc["conditions"] == list(DEFAULT_CONDITIONS)
+    per = [doc["per_condition"][c]["queries"] for c in DEFAULT_CONDITIONS]
+    assert per == [71] + [min(71, DEGRADED_QUERIES)] * 3
+    assert doc["loo"]["queries"] == sum(per) and doc["loo"]["right"] == 0
+    assert len(doc["null_scores"]) == sum(per)
+    assert 0 < doc["min_long_side_px"] <= 480  # the smallest frame: fitted inside 480x360
     from vlm_vpr_ros.cli.map import map_info
 
     info = map_info(demo_map)["local_features"]
@@ -323,9 +331,14 @@ def test_calibrate_adds_the_users_wrong_answers(demo_map, demo_data, tmp_path):
     doc = load_doc(ReferenceMap.load(m))
     assert doc["user"]["null_scores"] == wrong and doc["user"]["queries"] == 12
     model = PCorrect.from_doc(doc)
-    assert len(model.null_scores) == 71 + len(wrong) and "user (12 labelled" in model.source
+    from vlm_vpr_ros.mapping.local_features import DEGRADED_QUERIES
+
+    n = 71 + 3 * min(71, DEGRADED_QUERIES)  # leave-one-out wrong answers, four conditions
+    assert len(model.null_scores) == n + len(wrong) and "user (12 labelled" in model.source
     # those wrong answers are copies of mapped images (high scores): an answer scoring like the
-    # 4th strongest of them was a fix before (p 1 - 1/72) and is none now (1 - 5/78)
+    # 4th strongest of them was a fix before (p 1 - 1/(n+1)) and is none now (1 - 5/(n+7))
     before = PCorrect.from_doc({**doc, "user": None})
-    assert before.p_correct(wrong[-4]) == pytest.approx(1 - 1 / 72)
-    assert model.p_correct(wrong[-4]) == pytest.approx(1 - 5 / 78) and 1 - 5 / 78 < 0.95
+    assert before.p_correct(wrong[-4]) == pytest.approx(1 - 1 / (n + 1)) and \
+        1 - 1 / (n + 1) >= 0.99
+    k = n + len(wrong) + 1
+    assert model.p_correct(wrong[-4]) == pytest.approx(1 - 5 / k) and 1 - 5 / k < 0.99

@@ -81,6 +81,9 @@ class Hypothesis:
     verification: str = ""  # "verified" or "unverified: <why>" ("" = not attempted)
     status: str = ""  # "fix" / "no_fix" under the pipeline's status policy ("" = not set)
     status_reason: str = ""  # why not a fix
+    #: protection level (m): bounds the error except with the map's integrity risk
+    #: (docs/verification.md section 3); NaN when the answer has none (unverified, uncalibrated)
+    protection_m: float = math.nan
     #: inlier matches (query row, reference row) of the verified candidates, in order
     matches: list[np.ndarray] = field(default_factory=list, repr=False)
 
@@ -114,6 +117,8 @@ class Hypothesis:
             "p_correct": "" if math.isnan(self.p_correct) else f"{self.p_correct:.4f}",
             "inliers": "" if self.inliers < 0 else str(self.inliers),
             "inlier_ratio": "" if math.isnan(self.inlier_ratio) else f"{self.inlier_ratio:.3f}",
+            "protection_m": ("" if not math.isfinite(self.protection_m)
+                             else f"{self.protection_m:.1f}"),
             "top_ids": "|".join(c.ref_id for c in self.candidates[:TOP_IN_RESULTS]),
             "top_positions": "|".join(f"{c.lat:.7f} {c.lon:.7f}"
                                       for c in self.candidates[:TOP_IN_RESULTS]),

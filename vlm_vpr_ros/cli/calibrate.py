@@ -34,12 +34,22 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Conformal calibration of the 68 %% / 95 %% radii from a results CSV of "
                     "'vlm-vpr localize' on this map and its ground truth; stored in the map's "
                     "calibration.json (docs/fusion.md).")
-    p.add_argument("--results", required=True, metavar="RESULTS.csv",
-                   help="results CSV written by 'vlm-vpr localize' on --map")
-    p.add_argument("--ground-truth", required=True, metavar="CSV",
-                   help="file, lat, lon (or IMG_ID, LAT, LON)")
+    p.add_argument("--results", metavar="RESULTS.csv",
+                   help="results of 'vlm-vpr localize' on this map (with --ground-truth)")
+    p.add_argument("--ground-truth", metavar="CSV", help="file, lat, lon (or IMG_ID, LAT, LON)")
     p.add_argument("--map", required=True, metavar="MAP", help="the map the results came from")
     p.add_argument("--dry-run", action="store_true", help="print the factors, write nothing")
+    p.add_argument("--conditions", metavar="LIST", default=None,
+                   help="redo the map's leave-one-out verification calibration under these "
+                        "query conditions (comma-separated: full, fit<W>x<H>, jpeg<Q>_<W>x<H>; "
+                        "'default': full,fit640x480,fit480x360,jpeg40_640x480); needs the "
+                        "reference images (the map's own or --reference-images); "
+                        "docs/verification.md")
+    p.add_argument("--reference-images", metavar="DIR", default="",
+                   help="the folder the map was built from (for --conditions)")
+    p.add_argument("--degraded-queries", type=int, default=None, metavar="N",
+                   help="references queried under each degraded condition (default 60: the "
+                        "cost bound; more keeps more fixes at the same threshold)")
     p.set_defaults(func=cmd_calibrate)
 
 
@@ -118,8 +128,48 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
     from vlm_vpr_ros.maps.transaction import edit_lock
 
+    if args.results is None and args.conditions is None:
+        raise DataError("calibrate: give --results and --ground-truth, or --conditions")
+    if (args.results is None) != (args.ground_truth is None):
+        raise DataError("calibrate: --results and --ground-truth go together")
     with (contextlib.nullcontext() if args.dry_run else edit_lock(Path(args.map), "calibrate")):
-        return _calibrate(args)
+        if args.conditions is not None:
+            _calibrate_conditions(args)
+        return _calibrate(args) if args.results is not None else 0
+
+
+def _calibrate_conditions(args: argparse.Namespace) -> None:
+    """``--conditions``: the leave-one-out calibration of p_correct and the protection level
+    again, under the given query conditions (a user section of an earlier calibration is
+    kept)."""
+    from vlm_vpr_ros.mapping.local_features import calibrate_map
+    from vlm_vpr_ros.localization.verification.p_correct import (load_doc, save_doc,
+                                                                   validate)
+    from vlm_vpr_ros.localization.verification.conditions import parse_conditions
+    from vlm_vpr_ros.maps.reference_map import ReferenceMap
+
+    spec = None if args.conditions.strip() == "default" else args.conditions
+    if args.degraded_queries is not None and args.degraded_queries < 1:
+        raise DataError(f"--degraded-queries must be >= 1, got {args.degraded_queries}")
+    names = [c.name for c in parse_conditions(spec)]
+    if args.reference_images and not Path(args.reference_images).is_dir():
+        raise DataError(f"--reference-images {args.reference_images}: not a folder")
+    if args.dry_run:
+        print(f"dry run: would calibrate under {','.join(names)}")
+        return
+    ref_map = ReferenceMap.load(args.map)
+    old = load_doc(ref_map)
+    doc = calibrate_map(ref_map, conditions=names, images_dir=args.reference_images or None,
+                        degraded_queries=args.degraded_queries)
+    if doc is None:
+        raise DataError(f"{args.map}: the map stores no local features: nothing to calibrate")
+    if old is not None and old.get("user"):
+        doc["user"] = old["user"]
+        save_doc(ref_map, validate(doc, "verification calibration"))
+    loo = doc["loo"]
+    print(f"verification calibration under {','.join(doc['conditions'])}: {loo['queries']} "
+          f"leave-one-out queries ({loo['wrong']} wrong, {loo['right']} right), protection "
+          f"residual {doc['protection']['residual_m']:g} m, {loo['seconds']:g} s")
 
 
 def _calibrate(args: argparse.Namespace) -> int:

@@ -85,10 +85,13 @@ def add_verification_args(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--verification-required", action="store_true",
                    help="exit 2 when the map has no usable local features (default: warn, "
                         "answers unverified)")
-    g.add_argument("--fix-min-p-correct", type=float, default=0.95, metavar="P",
-                   help="status 'fix' needs p_correct >= P (default 0.95)")
+    g.add_argument("--fix-min-p-correct", type=float, default=0.99, metavar="P",
+                   help="status 'fix' needs p_correct >= P (default 0.99)")
     g.add_argument("--fix-max-sigma-m", type=float, default=50.0, metavar="M",
                    help="... and a per-axis sigma <= M metres (default 50)")
+    g.add_argument("--fix-alert-limit-m", type=float, default=50.0, metavar="M",
+                   help="... and a protection level (integrity risk 1e-3) below M metres "
+                        "(default 50)")
     g.add_argument("--trust-prior-for-fix", action="store_true",
                    help="prior_resolved answers (decisive only because the prior removed far "
                         "look-alikes) may be fixes")
@@ -110,7 +113,8 @@ def verification_config(args: argparse.Namespace) -> VerificationConfig:
 
 def status_policy(args: argparse.Namespace) -> StatusPolicy:
     return StatusPolicy(args.fix_min_p_correct, args.fix_max_sigma_m, args.trust_prior_for_fix,
-                        args.trust_operator_prior)
+                        args.trust_operator_prior,
+                        fix_alert_limit_m=getattr(args, "fix_alert_limit_m", 50.0))
 
 
 def add_local_feature_args(parser: argparse.ArgumentParser) -> None:
@@ -127,6 +131,10 @@ def add_local_feature_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--matcher-option", metavar="KEY=VALUE", action="append", default=[],
                         help="matcher setting for the build's calibration, repeatable (e.g. "
                              "weights=PATH for LightGlue)")
+    parser.add_argument("--calibration-conditions", metavar="LIST", default=None,
+                        help="query conditions of the verification calibration, comma-separated "
+                             "(full, fit<W>x<H>, jpeg<Q>_<W>x<H>; default full,fit640x480,"
+                             "fit480x360,jpeg40_640x480; docs/verification.md)")
 
 
 def local_feature_options(args: argparse.Namespace) -> dict:

@@ -223,11 +223,19 @@ def cmd_build_map(args: argparse.Namespace) -> int:
         m = build_map(args.images, args.coords, args.out, descriptor=args.descriptor,
                       descriptor_config=descriptor_options(args), partition=args.partition,
                       clusters=args.clusters, overwrite=args.overwrite, index=args.index,
-                      **local, **sizing)
+                      calibration_conditions=_conditions(args), **local, **sizing)
     print(f"map {args.out}: {m.n_references} references, {len(m.submaps)} submaps "
           f"({m.partition_method}), descriptor {m.descriptor_identity['name']} "
           f"{m.dim}-D")
     return 0
+
+
+def _conditions(args: argparse.Namespace):
+    """build-map --calibration-conditions, checked before any work (ConfigError: exit 2)."""
+    from vlm_vpr_ros.localization.verification.conditions import parse_conditions
+
+    v = getattr(args, "calibration_conditions", None)
+    return None if v is None else [c.name for c in parse_conditions(v)]
 
 
 def _localize_start(out: Path, resume: bool, overwrite: bool) -> list[dict]:

@@ -100,9 +100,9 @@ class Run:
 
 FIX_MEANING = (
     "      fixes: the share of answers published as STATUS_FIX: verified (local features + "
-    "geometry\n      over the top 20 candidates), p_correct >= 0.95 and sigma <= 50 m "
-    "(docs/verification.md);\n      fix prec 25m / 50m: the share of those fixes within 25 m / "
-    "50 m of the truth; '-': not verified")
+    "geometry\n      over the top 20 candidates), p_correct >= 0.99, protection level < 50 m "
+    "and sigma <= 50 m\n      (docs/verification.md);\n      fix prec 25m / 50m: the share of "
+    "those fixes within 25 m / 50 m of the truth; '-': not verified")
 
 
 def make_query(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:

@@ -150,7 +150,8 @@ def build_lookalike_map(pipe, refs: list[LookalikeRef], refs_dir: Path, map_dir:
     with StagedOutput(map_dir, "map", overwrite=True) as stage:
         ref_map.save(stage.path)
         write_map_calibration(ref_map, desc, coords)
-        write_local_features(ref_map, refx, local.__getitem__, loo_queries=LOO_QUERIES)
+        write_local_features(ref_map, refx, local.__getitem__, loo_queries=LOO_QUERIES,
+                             images_dir=refs_dir)
         stage.commit(validate=ReferenceMap.load)
     return ReferenceMap.load(map_dir)
 

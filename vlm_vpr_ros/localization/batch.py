@@ -29,14 +29,14 @@ R = TypeVar("R")
 RESULT_FIELDS = ["file", "lat", "lon", "prior_lat", "prior_lon", "prior_source", "prior_reason",
                  "prior_parse", "submap", "ref_id", "uncertainty_m", "radius95_m", "confidence",
                  "fusion", "n_candidates", "flags", "status", "p_correct", "inliers",
-                 "inlier_ratio", "descriptor_ms", "retrieval_ms", "rerank_ms", "verify_ms",
-                 "prior_latency_s", "top_ids", "top_positions"]
+                 "inlier_ratio", "protection_m", "descriptor_ms", "retrieval_ms", "rerank_ms",
+                 "verify_ms", "prior_latency_s", "top_ids", "top_positions"]
 #: called with (file, image, hypothesis) after each localized query (``--save-matches``)
 OnResult = Callable[[str, np.ndarray, Hypothesis], None]
 
 #: columns added after results files were first written: empty in older files (resume)
 ADDED_FIELDS = ("prior_parse", "status", "p_correct", "inliers", "inlier_ratio", "verify_ms",
-                "top_ids", "top_positions")
+                "top_ids", "top_positions", "protection_m")
 
 
 def started_ahead(items: Iterable[T], start: Callable[[T], R],

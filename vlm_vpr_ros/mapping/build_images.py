@@ -9,7 +9,7 @@ import os
 import shutil
 import time
 from pathlib import Path
-from typing import Any, Iterator, Mapping
+from typing import Any, Iterator, Mapping, Sequence
 
 import numpy as np
 
@@ -118,8 +118,11 @@ def build_map(images_dir: str | Path, coords_csv: str | Path, out_dir: str | Pat
               ram_budget_mb: float | None = None, max_submap_size: int | None = None,
               rerank_factor: int = DEFAULT_RERANK_FACTOR, engine: Any = None,
               local_features: str = "sift", feature_options: Mapping | None = None,
-              matcher_options: Mapping | None = None) -> ReferenceMap:
+              matcher_options: Mapping | None = None,
+              calibration_conditions: str | Sequence[str] | None = None) -> ReferenceMap:
     """Build (or resume building) a map folder; the format is in docs/maps.md ("Map format").
+    ``calibration_conditions``: the query conditions of the verification calibration
+    (default: full size, 640x480, 480x360, JPEG q40; docs/verification.md).
     ``local_features``: verification preset whose local features are stored in the map
     ("sift", "disk_lightglue"; "none": no features, answers unverified; docs/verification.md).
     ``engine``: describe (and fit), partition and index elsewhere, e.g. on Ray
@@ -136,6 +139,7 @@ def build_map(images_dir: str | Path, coords_csv: str | Path, out_dir: str | Pat
     check_kind(index)  # validate the name before any work
 
     refx = ReferenceExtractor(desc, local_features, feature_options, matcher_options)
+    refx.calibration_conditions = calibration_conditions
     if index == "auto" and ram_budget_mb is None:
         raise MapError("--index auto needs --ram-budget-mb")
     extra_opts = (ram_budget_mb, max_submap_size, rerank_factor)
@@ -219,7 +223,9 @@ def _build_staged(images_dir: Any, rows, desc: GlobalDescriptor, stage: StagedOu
     ref_map.save(stage.path)
     write_map_calibration(ref_map, feats[keep], coords)
     if refx is not None and refx.enabled:
-        write_local_features(ref_map, refx, ChunkFeatures(work, rows, refx), progress)
+        local = images_dir if isinstance(images_dir, Path) else _local_path(str(images_dir))
+        write_local_features(ref_map, refx, ChunkFeatures(work, rows, refx), progress,
+                             images_dir=local)
     stage.commit(validate=lambda p: ReferenceMap.load(p))
     dt = time.monotonic() - t0
     if skipped:
@@ -241,17 +247,22 @@ def write_map_calibration(ref_map: ReferenceMap, desc: np.ndarray, coords: np.nd
 
 
 def write_local_features(ref_map: ReferenceMap, refx: Any, features_of: Any,
-                         progress: bool = False, loo_queries: int | None = None) -> None:
+                         progress: bool = False, loo_queries: int | None = None,
+                         images_dir: Path | None = None) -> None:
     """Store the references' local features in the saved map and calibrate ``p_correct`` by
     leave-one-out on them (docs/verification.md; ``loo_queries``: at most this many queries,
-    default :data:`~vlm_vpr_ros.mapping.local_features.LOO_QUERIES`)."""
+    default :data:`~vlm_vpr_ros.mapping.local_features.LOO_QUERIES`), under the query
+    conditions ``refx.calibration_conditions`` (degraded copies of the images in
+    ``images_dir``)."""
     t0 = time.monotonic()
     store_features(ref_map, features_of, refx)
     log.info("local features stored (%s, %.0f kB per reference), %.1f s",
              refx.preset.name, ref_map.manifest["local_features"]["bytes"]
              / max(1, ref_map.n_references) / 1e3, time.monotonic() - t0)
     calibrate_map(ref_map, loo_queries or LOO_QUERIES, progress=progress,
-                  matcher_options=refx.matcher_options)
+                  matcher_options=refx.matcher_options,
+                  conditions=refx.calibration_conditions, images_dir=images_dir,
+                  descriptor=refx.descriptor)
 
 
 class ChunkFeatures:

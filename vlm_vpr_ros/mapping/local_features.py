@@ -24,6 +24,7 @@ from vlm_vpr_ros.errors import MapError
 from vlm_vpr_ros.localization.verification.components import (create_feature, create_matcher,
                                                               one_blas_thread)
 from vlm_vpr_ros.localization.verification.p_correct import loo_calibration, save_doc
+from vlm_vpr_ros.localization.verification.conditions import parse_conditions
 from vlm_vpr_ros.localization.verification.evidence import EvidenceConfig
 from vlm_vpr_ros.localization.verification.geometry import GeometryConfig, fundamental_inliers
 from vlm_vpr_ros.localization.verification.presets import (VerifierPreset, get_preset,
@@ -38,6 +39,9 @@ log = logging.getLogger(__name__)
 NO_FEATURES = ("none", "")
 #: leave-one-out queries at build time (bounds the build cost: ~20 matches each)
 LOO_QUERIES = 400
+#: references queried under each degraded condition (bounds the extra cost: one image decode,
+#: one SIFT pass per condition and ~20 matches each)
+DEGRADED_QUERIES = 60
 
 
 class ReferenceExtractor:
@@ -48,6 +52,8 @@ class ReferenceExtractor:
                  matcher_options: Mapping[str, Any] | None = None) -> None:
         self.descriptor = descriptor
         self.matcher_options = dict(matcher_options or {})  # for the calibration's matches
+        #: query conditions of the verification calibration (None: the default mix)
+        self.calibration_conditions: str | Sequence[str] | None = None
         self.preset: VerifierPreset | None = None
         self.extractor = None
         if preset not in NO_FEATURES and preset is not None:
@@ -116,9 +122,17 @@ class _Lazy(Sequence):
 
 def calibrate_map(ref_map: Any, max_queries: int = LOO_QUERIES, top_k: int = 20,
                   progress: bool = False, seed: int = 0,
-                  matcher_options: Mapping[str, Any] | None = None) -> dict[str, Any] | None:
+                  matcher_options: Mapping[str, Any] | None = None,
+                  conditions: str | Sequence[str] | None = None,
+                  images_dir: str | Path | None = None, descriptor: Any = None,
+                  degraded_queries: int | None = None) -> dict[str, Any] | None:
     """Leave-one-out calibration of ``p_correct`` on a saved map with stored local features,
-    written as its ``verification.json``; None when the map stores no features."""
+    written as its ``verification.json``; None when the map stores no features.
+    ``conditions`` (default :data:`~.conditions.DEFAULT_CONDITIONS`): the query conditions;
+    those other than ``full`` need the reference images (``images_dir``, else the map's own
+    ``images/``) and the map's ``descriptor`` (created when None); without images only ``full``
+    is calibrated (a warning). ``degraded_queries``: references queried under each degraded
+    condition (default :data:`DEGRADED_QUERIES`)."""
     store = FeatureStore.open(Path(ref_map.path), ref_map.manifest)
     if store is None:
         return None
@@ -159,25 +173,90 @@ def calibrate_map(ref_map: Any, max_queries: int = LOO_QUERIES, top_k: int = 20,
                                                  geometry).sum())
         return out
 
+    conds = [c.name for c in parse_conditions(conditions)]
+    degraded, smallest = _degraded_queries(ref_map, conds, images_dir, descriptor, top_k,
+                                           search_vec=lambda v, k: [
+                                               (d, int(starts[si] + j)) for d, si, j in
+                                               ref_map.search_submaps(everything, v, k)])
+    if degraded is None:
+        conds = [c for c in conds if c == "full"] or ["full"]
+    n_deg = DEGRADED_QUERIES if degraded_queries is None else int(degraded_queries)
     bar = None
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=min(max_queries, len(owners)), desc="verification calibration",
-                   unit="query", disable=None, leave=False)
+        bar = tqdm(desc="verification calibration", unit="query", disable=None, leave=False)
     with one_blas_thread():
         doc = loo_calibration(coords, search, features_of, inliers_of, top_k,
                               EvidenceConfig(), max_queries, seed,
-                              (lambda d, n: bar.update(1)) if bar is not None else None)
+                              (lambda d, n: bar.update(1)) if bar is not None else None,
+                              conds, degraded, n_deg)
     if bar is not None:
         bar.close()
+    doc["min_long_side_px"] = int(smallest[0]) if smallest else 0
     doc["feature"] = store.feature
     doc["preset"] = store.preset
     save_doc(ref_map, doc)
     loo = doc["loo"]
-    log.info("verification calibration: %d leave-one-out queries (%d wrong, %d right), "
-             "%.1f s", loo["queries"], loo["wrong"], loo["right"], time.monotonic() - t0)
+    log.info("verification calibration: %d leave-one-out queries (%d wrong, %d right) under "
+             "%s, %.1f s", loo["queries"], loo["wrong"], loo["right"], ",".join(conds),
+             time.monotonic() - t0)
     return doc
+
+
+def _degraded_queries(ref_map: Any, conds: Sequence[str], images_dir: str | Path | None,
+                      descriptor: Any, top_k: int, search_vec: Callable
+                      ) -> tuple[Callable | None, list[int]]:
+    """(``degraded(row)`` for :func:`~.calibration.loo_records`, a one-element list that the
+    calls fill with the smallest frame's longer side); (None, []) when no condition needs
+    images or the images are not reachable."""
+    from vlm_vpr_ros.errors import ImageDecodeError
+    from vlm_vpr_ros.files.images import load_image
+    from vlm_vpr_ros.localization.verification.conditions import parse_condition
+    from vlm_vpr_ros.localization.verification.stage import Verifier
+    from vlm_vpr_ros.maps.map_images import images_folder
+
+    others = [parse_condition(c) for c in conds if c != "full"]
+    if not others:
+        return None, []
+    root = images_folder(ref_map.path, ref_map.manifest, str(images_dir or ""))
+    if root is None or not Path(root).is_dir():
+        log.warning("%s: no reference images reachable: the verification calibration covers "
+                    "full-size queries only (conditions %s need the images: "
+                    "--reference-images)", ref_map.path, ",".join(c.name for c in others))
+        return None, []
+    if descriptor is None:
+        from vlm_vpr_ros.maps.reference_map import descriptor_for_map
+
+        descriptor = descriptor_for_map(ref_map, None, None)
+    verifier = Verifier(ref_map, {"top_k": max(1, top_k)})
+    if not verifier.enabled:
+        return None, []
+    shared = verifier.reuses_sift_of(descriptor)
+    ids = ref_map.all_ids()
+    smallest: list[int] = []
+
+    def degraded(row: int) -> dict[str, tuple[list[tuple[float, int]], LocalFeatures]]:
+        try:
+            image = load_image(Path(root) / ids[row])
+        except (OSError, ImageDecodeError) as exc:  # that query is skipped
+            log.warning("calibration query %s skipped: %s", ids[row], exc)
+            return {}
+        out = {}
+        for c in others:
+            frame = c.apply(image)
+            side = max(frame.shape[:2])
+            smallest[:] = [min(smallest[0], side)] if smallest else [side]
+            if shared:
+                desc, sift_pass = descriptor.describe_with_sift(frame)
+                local = verifier.query_features_from_sift(sift_pass)
+            else:
+                desc, local = descriptor.describe_one(frame), verifier.query_features(frame)
+            vec = np.asarray(desc, np.float32).reshape(1, -1)
+            out[c.name] = (search_vec(vec, top_k + 1), local)
+        return out
+
+    return degraded, smallest
 
 
 def edit_features(tx: Any, ref_map: Any, gen: int,

@@ -129,12 +129,15 @@ class NodeConfig:
     verification_required: bool = _p(False, "a map without usable local features (and no "
                                             "reference_images_dir) fails configure; false: "
                                             "a warning and unverified answers")
-    fix_min_p_correct: float = _p(0.95, "STATUS_FIX only when the verified answer's p_correct "
+    fix_min_p_correct: float = _p(0.99, "STATUS_FIX only when the verified answer's p_correct "
                                         "(calibrated probability of being within 25 m) is at "
                                         "least this", 0.5, 1.0, writable=True)
     fix_max_sigma_m: float = _p(50.0, "STATUS_FIX only when the fix's calibrated per-axis "
                                       "sigma is at most this (m); else STATUS_NO_FIX", 0.001,
                                 MAX_SIGMA_M, writable=True)
+    fix_alert_limit_m: float = _p(50.0, "STATUS_FIX only when the answer's protection level "
+                                        "(m, integrity risk 1e-3) is below this alert limit",
+                                  0.001, MAX_SIGMA_M, writable=True)
     trust_prior_for_fix: bool = _p(False, "an answer decisive only because the prior removed "
                                           "far look-alikes (prior_resolved) may be STATUS_FIX",
                                    writable=True)
@@ -203,7 +206,8 @@ class NodeConfig:
     def status_policy(self) -> StatusPolicy:
         return StatusPolicy(self.fix_min_p_correct, self.fix_max_sigma_m,
                             self.trust_prior_for_fix, self.trust_operator_prior,
-                            self.fallback_status, self.fallback_min_sigma_m)
+                            self.fallback_status, self.fallback_min_sigma_m,
+                            self.fix_alert_limit_m)
 
     def localizer_config(self) -> LocalizerConfig:
         return LocalizerConfig(top_p=self.top_p, fusion=self.fusion,

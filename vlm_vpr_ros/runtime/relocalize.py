@@ -247,6 +247,8 @@ def outcome_summary(outcome: Any, waited_s: float,
     status = ((f"STATUS_FIX ({h.status_reason})" if h.status_reason else "STATUS_FIX")
               if h.status == "fix" else f"NO_FIX ({h.status_reason or 'unverified'})")
     p = "" if math.isnan(h.p_correct) else f"p_correct {h.p_correct:.3f}, "
+    if math.isfinite(h.protection_m):  # integrity: the error bound at risk 1e-3
+        p = f"protection {h.protection_m:.0f} m, {p}"
     took = outcome.finished - outcome.started
     what = "relocalized frame" if outcome.trigger == "relocalize" else "fix for frame"
     return is_precise_fix(h), (f"{what} {frame.key}: lat {h.lat:.6f}, lon {h.lon:.6f}, "

@@ -87,6 +87,7 @@ class RuntimeStats:
                 "status_reason": hyp.status_reason, "verification": hyp.verification or "none",
                 "p_correct": hyp.p_correct, "inliers": hyp.inliers,
                 "inlier_ratio": hyp.inlier_ratio,
+                "protection_m": hyp.protection_m,  # integrity: error bound at risk 1e-3
                 "radius68_m": hyp.uncertainty_m, "radius95_m": hyp.radius95_m,
                 "confidence": hyp.confidence, "fusion": hyp.fusion or "none",
                 "ref_id": hyp.ref_id, "submap": hyp.submap, "candidates": len(hyp.candidates),

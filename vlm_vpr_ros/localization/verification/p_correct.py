@@ -15,6 +15,13 @@ ones, ``P(p_correct >= 0.95) <= 5 %``: the threshold bounds the false-fix rate a
 answers, whatever the share of right ones. It never claims what it has not seen: with fewer
 than 19 wrong answers no score reaches 0.95, and an uncalibrated map gives NaN (never a fix).
 
+Query conditions (:mod:`.conditions`): besides the stored references (``full``), degraded
+copies of reference images (fitted inside 640×480 / 480×360, JPEG q40) are queries too, so that
+the wrong answers cover the frames a robot sends; their scores are pooled. The default fix
+threshold 0.99 needs >= 99 wrong answers; the degraded copies supply them on small maps
+(docs/verification.md section 2). The document (version 2) also holds the protection level's
+residual (:func:`protection_residual`); version 1 files (full size only) still load.
+
 ``vlm-vpr calibrate`` adds the wrong answers among a user's labelled queries (real queries of
 the deployment: the most relevant negatives) to the set (the ``user`` section).
 
@@ -44,7 +51,14 @@ log = logging.getLogger(__name__)
 
 VERIFY_CAL_FILE = "verification.json"
 VERIFY_CAL_FORMAT = "vlm_vpr_ros.verification_calibration"
-VERIFY_CAL_VERSION = 1
+VERIFY_CAL_VERSION = 2
+#: versions that load (1: before query conditions and protection levels: full size only)
+VERIFY_CAL_VERSIONS = (1, 2)
+#: integrity risk the protection level is stated at (docs/verification.md section 3)
+INTEGRITY_RISK = 1e-3
+#: a verified candidate supports the answer (the scene is visible from there) when it holds at
+#: least this share of the winner's inliers, above the noise level
+SUPPORT_SHARE = 0.25
 
 
 @dataclass
@@ -54,6 +68,12 @@ class PCorrect:
     null_scores: np.ndarray  # scores of wrong answers, sorted ascending
     place_radius_m: float = 25.0
     source: str = "none"
+    #: what the protection level adds to the support spread (m; calibration_doc)
+    residual_m: float = 25.0
+    integrity_risk: float = INTEGRITY_RISK
+    #: query conditions calibrated for (empty: a version-1 map, full size only, unrecorded)
+    conditions: tuple[str, ...] = ()
+    min_long_side_px: int = 0  # smallest calibrated frame's longer side (0: unknown)
 
     @property
     def calibrated(self) -> bool:
@@ -86,8 +106,12 @@ class PCorrect:
         src = f"map leave-one-out ({n_loo} queries)" if n_loo else "none"
         if n_user:
             src += f" + user ({n_user} labelled queries)"
-        return cls(np.sort(np.asarray(null, np.float64)),
-                   float(doc.get("place_radius_m", 25.0)), src)
+        radius = float(doc.get("place_radius_m", 25.0))
+        prot = doc.get("protection") or {}
+        return cls(np.sort(np.asarray(null, np.float64)), radius, src,
+                   max(radius, float(prot.get("residual_m", radius))),
+                   float(prot.get("integrity_risk", INTEGRITY_RISK)),
+                   tuple(doc.get("conditions") or ()), int(doc.get("min_long_side_px") or 0))
 
 
 def verified_radius(model: PCorrect, p: float, q: float, fallback_m: float,
@@ -122,46 +146,155 @@ def sample_queries(coords: np.ndarray, max_queries: int, place_radius_m: float,
     return np.sort(np.concatenate([first, second]).astype(np.int64))
 
 
+#: (query condition, query row, candidate rows, their inlier counts) of one leave-one-out query
+LooRecord = tuple[str, int, list[int], np.ndarray]
+#: (search result [(squared distance, row)], local features) of a degraded query, per condition
+Degraded = Callable[[int], Mapping[str, tuple[list[tuple[float, int]], LocalFeatures]]]
+
+
+def loo_records(coords: np.ndarray, search: Callable[[int, int], list[tuple[float, int]]],
+                features_of: Callable[[int], LocalFeatures],
+                inliers_of: Callable[[LocalFeatures, Sequence[LocalFeatures]], np.ndarray],
+                top_k: int, cfg: EvidenceConfig = EvidenceConfig(), max_queries: int = 150,
+                seed: int = 0, progress: Callable[[int, int], None] | None = None,
+                conditions: Sequence[str] = ("full",), degraded: Degraded | None = None,
+                degraded_queries: int | None = None) -> list[LooRecord]:
+    """The leave-one-out queries (:func:`loo_calibration`): ``full`` queries with the stored
+    features of up to ``max_queries`` references; the other ``conditions`` through
+    ``degraded(row)`` (the degraded copies of that reference's image, described and searched)
+    on ``degraded_queries`` of the same references (default: all of them)."""
+    coords = np.asarray(coords, np.float64)
+    rng = np.random.default_rng(seed)
+    rows = sample_queries(coords, max_queries, cfg.place_radius_m, rng) if len(coords) > 2 \
+        else np.zeros(0, np.int64)
+    others = [c for c in conditions if c != "full"] if degraded is not None else []
+    n_deg = len(rows) if degraded_queries is None else min(len(rows), int(degraded_queries))
+    deg_rows = np.sort(rng.choice(rows, size=n_deg, replace=False)) if others and n_deg \
+        else np.zeros(0, np.int64)
+    jobs = ([("full", r) for r in rows.tolist()] if "full" in conditions else []) + \
+        [("*", r) for r in deg_rows.tolist()]
+    out: list[LooRecord] = []
+
+    def one(cond: str, qi: int, found: list[tuple[float, int]], feat: LocalFeatures) -> None:
+        # only the query itself is left out: a copy of its image elsewhere in the map (a
+        # re-upload at another position, a look-alike) is what real queries meet too
+        cand = [j for _, j in found if j != qi][:top_k]
+        if cand:
+            out.append((cond, qi, cand, np.asarray(
+                inliers_of(feat, [features_of(j) for j in cand]), np.int64)))
+
+    for done, (cond, qi) in enumerate(jobs):
+        if cond == "full":
+            one(cond, qi, search(qi, top_k + 1), features_of(qi))
+        else:
+            for name, (found, feat) in degraded(qi).items():
+                if name in others:
+                    one(name, qi, found, feat)
+        if progress is not None:
+            progress(done + 1, len(jobs))
+    return out
+
+
+def support_spread_m(lat: np.ndarray, lon: np.ndarray, inliers: np.ndarray, winner: int,
+                     floor: int, share: float = SUPPORT_SHARE) -> float:
+    """Distance (m) from the winner to the farthest candidate that verifies with substantial
+    inliers (above the noise level ``floor`` and at least ``share`` of the winner's): the
+    region where the query's scene is visible from (0 when only the winner verifies)."""
+    inl = np.asarray(inliers, np.int64)
+    need = max(floor + 1, math.ceil(share * max(int(inl[winner]), 0)))
+    sup = np.flatnonzero(inl >= need)
+    if not len(sup) or inl[winner] < need:
+        return 0.0
+    d = haversine_km(lat[winner], lon[winner], np.asarray(lat)[sup], np.asarray(lon)[sup])
+    return float(np.max(np.atleast_1d(d))) * 1000.0
+
+
 def loo_calibration(coords: np.ndarray, search: Callable[[int, int], list[tuple[float, int]]],
                     features_of: Callable[[int], LocalFeatures],
                     inliers_of: Callable[[LocalFeatures, Sequence[LocalFeatures]], np.ndarray],
                     top_k: int, cfg: EvidenceConfig = EvidenceConfig(),
                     max_queries: int = 150, seed: int = 0,
-                    progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
+                    progress: Callable[[int, int], None] | None = None,
+                    conditions: Sequence[str] = ("full",), degraded: Degraded | None = None,
+                    degraded_queries: int | None = None,
+                    min_long_side_px: int = 0) -> dict[str, Any]:
     """The build-time calibration (module docstring) as a JSON-ready dict.
 
     ``coords``: (n, 2) positions of the references (global row order); ``search(row, k)``: the
     k nearest references of ``row`` by descriptor as (squared distance, row), itself included;
-    ``features_of(row)``; ``inliers_of(query, refs)``: verified inlier counts."""
+    ``features_of(row)``; ``inliers_of(query, refs)``: verified inlier counts; ``conditions``,
+    ``degraded``, ``degraded_queries``: the query conditions (:func:`loo_records`);
+    ``min_long_side_px``: the smallest degraded frame's longer side (0: full size only)."""
     t0 = time.monotonic()
+    recs = loo_records(coords, search, features_of, inliers_of, top_k, cfg, max_queries, seed,
+                       progress, conditions, degraded, degraded_queries)
+    done = sorted({r[0] for r in recs} | ({"full"} if "full" in conditions else set()),
+                  key=list(conditions).index)
+    return calibration_doc(recs, coords, top_k, cfg, done, min_long_side_px,
+                           time.monotonic() - t0)
+
+
+def calibration_doc(records: Sequence[LooRecord], coords: np.ndarray, top_k: int,
+                    cfg: EvidenceConfig, conditions: Sequence[str], min_long_side_px: int = 0,
+                    seconds: float = 0.0) -> dict[str, Any]:
+    """The ``verification.json`` document of leave-one-out ``records``: the wrong answers'
+    scores (pooled over the conditions), the right answers' errors, per-condition counts and
+    the protection level's residual (:func:`protection_residual`)."""
     coords = np.asarray(coords, np.float64)
-    rng = np.random.default_rng(seed)
-    rows = sample_queries(coords, max_queries, cfg.place_radius_m, rng) if len(coords) > 2 \
-        else np.zeros(0, np.int64)
-    wrong, right_err = [], []
-    for done, qi in enumerate(rows.tolist()):
-        # only the query itself is left out: a copy of its image elsewhere in the map (a
-        # re-upload at another position, a look-alike) is what real queries meet too
-        found = [(d, j) for d, j in search(qi, top_k + 1) if j != qi]
-        cand = [j for _, j in found[:top_k]]
-        if cand:
-            inl = inliers_of(features_of(qi), [features_of(j) for j in cand])
-            ev = weigh(coords[cand, 0], coords[cand, 1], inl, None, cfg)
-            w = cand[ev.winner]
-            err = float(haversine_km(coords[qi, 0], coords[qi, 1],
-                                     coords[w, 0], coords[w, 1])) * 1000.0
-            if err <= cfg.place_radius_m:
-                right_err.append(round(err, 2))
-            else:
-                wrong.append(round(float(ev.score), 4))
-        if progress is not None:
-            progress(done + 1, len(rows))
+    wrong, right_err, per = [], [], {c: {"queries": 0, "wrong": 0, "right": 0}
+                                     for c in conditions}
+    graded = []  # (score, error m, support spread m, place in the map) above the noise level
+    xyz = latlon_to_unit(coords[:, 0], coords[:, 1]) if len(coords) else np.zeros((0, 3))
+    cos_r = math.cos(cfg.place_radius_m / 1000.0 / EARTH_RADIUS_KM)
+    in_map: dict[int, bool] = {}
+
+    def mapped(qi: int) -> bool:
+        """Whether another reference lies within the place radius of reference ``qi``."""
+        if qi not in in_map:
+            near = (xyz @ xyz[qi]) >= cos_r
+            in_map[qi] = int(near.sum()) > 1
+        return in_map[qi]
+    for cond, qi, cand, inl in records:
+        lat, lon = coords[cand, 0], coords[cand, 1]
+        ev = weigh(lat, lon, inl, None, cfg)
+        w = cand[ev.winner]
+        err = float(haversine_km(coords[qi, 0], coords[qi, 1],
+                                 coords[w, 0], coords[w, 1])) * 1000.0
+        pc = per.setdefault(cond, {"queries": 0, "wrong": 0, "right": 0})
+        pc["queries"] += 1
+        if err <= cfg.place_radius_m:
+            right_err.append(round(err, 2))
+            pc["right"] += 1
+        else:
+            wrong.append(round(float(ev.score), 4))
+            pc["wrong"] += 1
+        if ev.winner_inliers > cfg.competitor_floor:
+            graded.append((float(ev.score), err, support_spread_m(
+                lat, lon, inl, ev.winner, cfg.competitor_floor), mapped(qi)))
+    model = PCorrect(np.sort(np.asarray(wrong, np.float64)), cfg.place_radius_m)
+    residual, n_fix = protection_residual(model, graded, cfg.place_radius_m)
     return {"format": VERIFY_CAL_FORMAT, "version": VERIFY_CAL_VERSION,
             "place_radius_m": cfg.place_radius_m, "competitor_floor": cfg.competitor_floor,
             "top_k": int(top_k), "null_scores": sorted(wrong),
             "place_errors_m": sorted(right_err),
-            "loo": {"queries": int(len(rows)), "wrong": len(wrong), "right": len(right_err),
-                    "seconds": round(time.monotonic() - t0, 1)}}
+            "conditions": list(conditions), "min_long_side_px": int(min_long_side_px),
+            "per_condition": per,
+            "protection": {"integrity_risk": INTEGRITY_RISK, "support_share": SUPPORT_SHARE,
+                           "residual_m": round(residual, 1), "fix_grade_answers": n_fix},
+            "loo": {"queries": len(records), "wrong": len(wrong), "right": len(right_err),
+                    "seconds": round(seconds, 1)}}
+
+
+def protection_residual(model: PCorrect, graded: Sequence[tuple[float, float, float, bool]],
+                        place_radius_m: float, level: float = 0.95) -> tuple[float, int]:
+    """(residual m, answers it rests on): what the protection level adds to the support
+    spread. Among the leave-one-out answers at ``p_correct >= level`` whose query place is in
+    the map (another reference within the place radius of it), the largest ``error - spread``,
+    at least the place radius (a right answer is anywhere within it of the truth). Answers at
+    places the map does not cover (a landmark seen from a mapped place 60-500 m away) are no
+    matter of the radius: the threshold bounds them (docs/verification.md section 3)."""
+    res = [e - s for sc, e, s, mapped in graded if mapped and model.p_correct(sc) >= level]
+    return max([place_radius_m] + res), len(res)
 
 
 def with_user_negatives(doc: Mapping[str, Any] | None, scores: Sequence[float], queries: int,
@@ -171,7 +304,11 @@ def with_user_negatives(doc: Mapping[str, Any] | None, scores: Sequence[float], 
     new = dict(doc) if doc else {
         "format": VERIFY_CAL_FORMAT, "version": VERIFY_CAL_VERSION, "place_radius_m": 25.0,
         "competitor_floor": EvidenceConfig().competitor_floor, "top_k": 20,
-        "null_scores": [], "place_errors_m": [], "loo": {"queries": 0}}
+        "null_scores": [], "place_errors_m": [], "loo": {"queries": 0},
+        # the user's own queries are the deployment's conditions (no frame size recorded)
+        "conditions": ["user"], "min_long_side_px": 0,
+        "protection": {"integrity_risk": INTEGRITY_RISK, "support_share": SUPPORT_SHARE,
+                       "residual_m": 25.0, "fix_grade_answers": 0}}
     new["user"] = {"null_scores": sorted(round(float(s), 4) for s in scores),
                    "queries": int(queries), "results": results}
     return validate(new, "verification calibration")
@@ -182,7 +319,7 @@ def validate(doc: Any, where: str) -> dict[str, Any]:
     """Structure check; MapError naming the field."""
     if not isinstance(doc, dict) or doc.get("format") != VERIFY_CAL_FORMAT:
         raise MapError(f"{where}: not a {VERIFY_CAL_FORMAT} file")
-    if doc.get("version") != VERIFY_CAL_VERSION:
+    if doc.get("version") not in VERIFY_CAL_VERSIONS:
         raise MapError(f"{where}: verification calibration version {doc.get('version')!r} "
                        "unsupported")
     for key in ("null_scores", "place_errors_m"):
@@ -191,6 +328,19 @@ def validate(doc: Any, where: str) -> dict[str, Any]:
                 isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
                 and v >= 0 for v in vals):
             raise MapError(f"{where}: {key} must be a list of finite numbers >= 0")
+    if doc["version"] >= 2:
+        conds = doc.get("conditions")
+        prot = doc.get("protection")
+        if not isinstance(conds, list) or not conds or not all(isinstance(c, str)
+                                                               for c in conds):
+            raise MapError(f"{where}: conditions must be a non-empty list of names")
+        if not isinstance(prot, dict) or not _positive(prot.get("residual_m")) or not (
+                _positive(prot.get("integrity_risk")) and prot["integrity_risk"] < 1):
+            raise MapError(f"{where}: protection must hold residual_m > 0 and an "
+                           "integrity_risk in (0, 1)")
+        side = doc.get("min_long_side_px")
+        if not isinstance(side, int) or isinstance(side, bool) or side < 0:
+            raise MapError(f"{where}: min_long_side_px must be an integer >= 0")
     user = doc.get("user")
     if user is not None and (not isinstance(user, dict)
                              or not isinstance(user.get("null_scores"), list)):
@@ -200,6 +350,11 @@ def validate(doc: Any, where: str) -> dict[str, Any]:
         if not isinstance(v, (int, float)) or isinstance(v, bool) or not v > 0:
             raise MapError(f"{where}: {key} must be a number > 0")
     return doc
+
+
+def _positive(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) \
+        and v > 0
 
 
 def load_doc(ref_map: Any) -> dict[str, Any] | None:

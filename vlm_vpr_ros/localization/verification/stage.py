@@ -27,7 +27,9 @@ from vlm_vpr_ros.geodesy import haversine_km
 from vlm_vpr_ros.localization.verification.components import (LocalFeatureExtractor, Matcher,
                                                               create_feature, create_matcher,
                                                               one_blas_thread)
-from vlm_vpr_ros.localization.verification.p_correct import PCorrect, load_doc, verified_radius
+from vlm_vpr_ros.localization.verification.conditions import ConditionWatch
+from vlm_vpr_ros.localization.verification.p_correct import (PCorrect, load_doc,
+                                                             support_spread_m, verified_radius)
 from vlm_vpr_ros.localization.verification.evidence import EvidenceConfig, spread_radii, weigh
 from vlm_vpr_ros.localization.verification.geometry import GeometryConfig, fundamental_inliers
 from vlm_vpr_ros.localization.verification.presets import preset_for_map
@@ -74,6 +76,7 @@ class Verifier:
         self.extractor: LocalFeatureExtractor | None = None
         self.matcher: Matcher | None = None
         self.model = PCorrect(np.zeros(0))
+        self.watch: ConditionWatch | None = None  # frames below the calibrated conditions
         self._cache: collections.OrderedDict[str, LocalFeatures | None] = \
             collections.OrderedDict()
         self._lock = threading.Lock()
@@ -148,6 +151,13 @@ class Verifier:
                         "features; p_correct is uncalibrated", self.map.path)
             doc = None
         self.model = PCorrect.from_doc(self._usable_calibration(doc))
+        if self.model.calibrated and not self.model.conditions:
+            log.warning("%s: the verification calibration predates query conditions (full-size "
+                        "references only): answers are flagged uncalibrated_conditions; "
+                        "recalibrate with 'vlm-vpr calibrate --map MAP --conditions ...'",
+                        self.map.path)
+        self.watch = ConditionWatch(str(self.map.path), self.model.min_long_side_px,
+                                    self.model.conditions)
         self.evidence = EvidenceConfig(
             place_radius_m=float((doc or {}).get("place_radius_m", 25.0)),
             competitor_floor=int((doc or {}).get("competitor_floor", 12)))
@@ -291,20 +301,60 @@ class Verifier:
         p_radius = p if trust_prior else pu  # an untrusted prior narrows no radius
         fb68 = hyp.uncertainty_m + shift_m
         fb95 = (hyp.radius95_m if math.isfinite(hyp.radius95_m) else fb68) + shift_m
-        if ev.winner_inliers <= self.evidence.competitor_floor and not radii_calibrated:
+        if ev.winner_inliers <= self.evidence.competitor_floor and (
+                not radii_calibrated or int(counts.max()) <= 0):
             # geometry supports no candidate (a lens cap, fog, a place not in the map) and the
             # posterior's radii are not calibrated on this map (no leave-one-out pairs, e.g.
-            # the demo map: its posterior said 25 m for a black frame): the radii cover the
-            # candidates' spread instead
+            # the demo map: its posterior said 25 m for a black frame), or not one candidate
+            # has a single inlier (a 32x32 frame: no evidence at all, whatever the posterior's
+            # floor says; a map with one picture twice at one place has "calibrated" 25 m
+            # radii): the radii cover the candidates' spread instead
             s68, s95 = spread_radii(lat, lon, ev.winner)
             fb68, fb95 = max(fb68, s68), max(fb95, s95)
         r68 = verified_radius(self.model, p_radius, 0.68, fb68, level)
         hyp.uncertainty_m = r68
         hyp.radius95_m = max(r68, verified_radius(self.model, p_radius, 0.95, fb95, level))
+        support = counts
+        if trust_prior and logp is not None:  # a trusted prior rules out the gated look-alikes
+            gated = logp < logp[ev.winner] - math.log(self.evidence.prior_gate)
+            support = np.where(gated, -1, counts)
+        hyp.protection_m = self._protection(hyp, lat, lon, support, ev.winner, p_radius, level)
         hyp.verification = "verified"
-        hyp.flags = tuple(hyp.flags) + ("verified",)
+        hyp.flags = tuple(hyp.flags) + ("verified",) + self._condition_flags(query)
         hyp.matches = [matches[i] for i in ev.order]
         hyp.timings_ms["verify_ms"] = (time.perf_counter() - t0) * 1e3
+
+    def _protection(self, hyp: Hypothesis, lat: np.ndarray, lon: np.ndarray,
+                    counts: np.ndarray, winner: int, p: float, level: float) -> float:
+        """The protection level (m) of a verified answer (docs/verification.md section 3):
+        for an answer verified at ``p_correct >= level`` the support spread (how far apart the
+        references that verify with substantial inliers are; with a trusted prior, not those
+        the prior gate rules out) plus the calibrated residual; for any other the larger of that
+        and the 1 - integrity_risk radius of its own Gaussian (its radii); NaN on an
+        uncalibrated map (no integrity claim)."""
+        from vlm_vpr_ros.localization.verification.status import horizontal_sigma, k_risk
+
+        m = self.model
+        if not m.calibrated:
+            return math.nan
+        pl = support_spread_m(lat, lon, counts, winner, self.evidence.competitor_floor) \
+            + m.residual_m
+        if math.isfinite(p) and p >= level:
+            return pl
+        return max(pl, k_risk(m.integrity_risk) * horizontal_sigma(hyp))
+
+    def _condition_flags(self, query: LocalFeatures) -> tuple[str, ...]:
+        """``uncalibrated_conditions`` on a map calibrated before query conditions existed, or
+        for a frame smaller than the calibration covered (warned once)."""
+        if not self.model.calibrated:
+            return ()
+        if not self.model.conditions:
+            return ("uncalibrated_conditions",)
+        w, h = query.size
+        shape = (round(h * query.scale), round(w * query.scale))
+        if self.watch is not None and self.watch.check(shape):
+            return ("uncalibrated_conditions",)
+        return ()
 
 
 def widen_to_candidate_spread(hyp: Hypothesis, k: int = 20) -> None:

@@ -1,0 +1,241 @@
+#!/usr/bin/env python3
+"""Integrity of STATUS_FIX at robot resolutions (issue 27, docs/verification.md section 7):
+SF night (../shared/data/sf_night: 332 references, 34 night queries), the map's verification
+calibrated by leave-one-out on its references only (full size only, as before, and the four
+query conditions: the cost of both is measured), then the 34 queries at full size, fitted
+inside 640×480 and 480×360 and JPEG q40 at 640×480, with no prior and with a city-centre prior.
+Prints target vs measured: fixes more than 50 m off, HMI (error > protection level while FIX),
+fix counts, the median protection level of fixes, per-query latency.
+
+The queries are never used to choose anything: the thresholds and the calibration come from
+the references only.
+
+    .venv/bin/python benchmarks/bench_integrity.py --map DIR [--build] [--save RECORDS.pkl]
+"""
+
+from __future__ import annotations
+
+import argparse
+import pickle
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from vlm_vpr_ros.files.images import load_image  # noqa: E402
+from vlm_vpr_ros.geodesy import haversine_km  # noqa: E402
+from vlm_vpr_ros.localization.pipeline import LocalizationPipeline  # noqa: E402
+from vlm_vpr_ros.localization.verification.conditions import parse_condition  # noqa: E402
+from vlm_vpr_ros.mapping.build_images import read_coords_csv  # noqa: E402
+from vlm_vpr_ros.priors.provider import Prior, PriorResult  # noqa: E402
+
+SF = REPO.parent.parent / "shared" / "data" / "sf_night"
+CITY_CENTRE = (37.7749, -122.4194)
+QUERY_CONDITIONS = ("full", "fit640x480", "fit480x360", "jpeg40_640x480")
+
+
+def calibrate(map_dir: Path, root: Path, conditions: str) -> float:
+    """Recalibrate the map's verification under ``conditions``; seconds."""
+    from vlm_vpr_ros.mapping.local_features import calibrate_map
+    from vlm_vpr_ros.maps.reference_map import ReferenceMap
+
+    t0 = time.monotonic()
+    doc = calibrate_map(ReferenceMap.load(map_dir), conditions=conditions,
+                        images_dir=root)
+    dt = time.monotonic() - t0
+    loo = doc["loo"]
+    print(f"calibration {conditions}: {loo['queries']} leave-one-out queries, {loo['wrong']} "
+          f"wrong / {loo['right']} right, residual {doc['protection']['residual_m']} m, "
+          f"smallest frame {doc['min_long_side_px']} px, {dt:.1f} s")
+    for c, v in doc["per_condition"].items():
+        print(f"    {c:<16} {v}")
+    return dt
+
+
+def study(map_dir: Path, root: Path, per_condition: int) -> None:
+    """Leave-one-out under the four conditions with ``per_condition`` degraded queries each:
+    fix-grade answers and those more than 50 m off, split by whether the query's place is in
+    the map (another reference within 25 m), per threshold; and the two decision-rule
+    variants of issue 27, each calibrated on the same leave-one-out answers."""
+    import vlm_vpr_ros.localization.verification.p_correct as cal
+    from vlm_vpr_ros.mapping.local_features import calibrate_map
+    from vlm_vpr_ros.maps.reference_map import ReferenceMap
+
+    grab: dict = {}
+    orig = cal.calibration_doc
+
+    def keep(records, coords, *a, **k):
+        grab["records"], grab["coords"] = list(records), np.asarray(coords)
+        return orig(records, coords, *a, **k)
+
+    cal.calibration_doc = keep
+    try:
+        calibrate_map(ReferenceMap.load(map_dir), conditions=",".join(QUERY_CONDITIONS),
+                      images_dir=root, degraded_queries=per_condition)
+    finally:
+        cal.calibration_doc = orig
+    rows = [_loo_row(grab["coords"], *r) for r in grab["records"]]
+    wrong = [r for r in rows if r["err"] > 25]
+    p = {v: _conformal([r[v] for r in wrong]) for v in ("ratio", "a", "b")}
+    comb = _conformal([max(p["ratio"](r["ratio"]), p["b"](r["b"])) for r in wrong], cap=False)
+    pv = {"ratio": lambda r: p["ratio"](r["ratio"]), "a: competitor > 50 m": lambda r:
+          p["a"](r["a"]), "b: ratio or consensus": lambda r: comb(max(p["ratio"](r["ratio"]),
+                                                                      p["b"](r["b"])))}
+    print(f"\nleave-one-out study: {len(rows)} queries ({per_condition} per degraded "
+          f"condition), {len(wrong)} wrong")
+    print("| threshold | fix-grade, place in the map (>50 m off) | fix-grade, place not in the "
+          "map (>50 m off) |\n|---|---|---|")
+    for t in (0.95, 0.98, 0.99, 0.995, 0.999):
+        cells = []
+        for mapped in (True, False):
+            sel = [r for r in rows if r["mapped"] == mapped and r["fixable"]
+                   and pv["ratio"](r) >= t]
+            cells.append(f"{len(sel)} ({sum(r['err'] > 50 for r in sel)})")
+        print(f"| {t} | {cells[0]} | {cells[1]} |")
+    print("\ndecision rules (fix-grade / >50 m off / error > protection, per condition):")
+    for name, f in pv.items():
+        for t in (0.95, 0.99):
+            out = []
+            for c in QUERY_CONDITIONS:
+                sel = [r for r in rows if r["cond"] == c and r["fixable"] and f(r) >= t
+                       and r["spread"] + 25 < 50]
+                out.append(f"{c} {len(sel)}/{sum(r['err'] > 50 for r in sel)}/"
+                           f"{sum(r['err'] > r['spread'] + 25 for r in sel)}")
+            print(f"  {name:<24} {t}: " + ", ".join(out))
+
+
+def _conformal(null, cap: bool = True):
+    """p_correct of a score from wrong answers' scores (near-tie cap for ratio-like scores)."""
+    null = np.sort(np.asarray(null, np.float64))
+
+    def p(x: float) -> float:
+        v = 1 - (1 + len(null) - np.searchsorted(null, x, side="left")) / (1 + len(null))
+        return min(v, x / (1 + x)) if cap and x < 2 else v
+    return p
+
+
+def _loo_row(coords, cond, qi, cand, inl) -> dict:
+    from vlm_vpr_ros.localization.verification.p_correct import support_spread_m
+    from vlm_vpr_ros.localization.verification.evidence import weigh
+
+    lat, lon = coords[cand, 0], coords[cand, 1]
+    ev = weigh(lat, lon, inl, None)
+    w = ev.winner
+    d = np.atleast_1d(haversine_km(lat[w], lon[w], lat, lon)) * 1000
+    far = d > 50
+    a = ev.winner_inliers / (1 + max(12, int(inl[far].max()) if far.any() else 0))
+    good = np.where(inl > 12, inl, 0)
+    cons = np.array([good[np.atleast_1d(haversine_km(lat[i], lon[i], lat, lon)) * 1000 <= 25]
+                     .sum() for i in range(len(inl))])
+    b = cons[w] / (1 + max(12, int(cons[d > 25].max()) if (d > 25).any() else 0))
+    to_all = np.atleast_1d(haversine_km(coords[qi, 0], coords[qi, 1], coords[:, 0],
+                                        coords[:, 1])) * 1000
+    return {"cond": cond, "ratio": ev.score, "a": a, "b": b, "err": float(to_all[cand[w]]),
+            "spread": support_spread_m(lat, lon, inl, w, 12),
+            "mapped": int((to_all <= 25).sum()) > 1, "fixable": ev.winner_inliers > 12}
+
+
+def overhead(n: int = 20000) -> float:
+    """Microseconds per query of what issue 27 adds to a verified query: the support spread
+    over 40 candidates and the frame-size check of the calibrated conditions."""
+    from vlm_vpr_ros.localization.verification.p_correct import support_spread_m
+    from vlm_vpr_ros.localization.verification.conditions import ConditionWatch
+
+    rng = np.random.default_rng(0)
+    lat = 37.77 + rng.normal(0, 0.01, 40)
+    lon = -122.42 + rng.normal(0, 0.01, 40)
+    inl = rng.integers(0, 200, 40)
+    watch = ConditionWatch("bench", 360, list(QUERY_CONDITIONS))
+    t0 = time.perf_counter()
+    for i in range(n):
+        support_spread_m(lat, lon, inl, i % 40, 12)
+        watch.check((480, 640))
+    return (time.perf_counter() - t0) / n * 1e6
+
+
+def run_queries(map_dir: Path, root: Path, records: dict) -> dict:
+    pipe = LocalizationPipeline.open(map_dir)
+    queries = read_coords_csv(root / "queries.csv")
+    out = {}
+    for cname in QUERY_CONDITIONS:
+        cond = parse_condition(cname)
+        for pname, prior in (("no prior", None), ("city-centre prior", CITY_CENTRE)):
+            rows, ms = [], []
+            for f, la, lo in queries:
+                image = cond.apply(load_image(root / f))
+                pr = None if prior is None else PriorResult(Prior(*prior, "test"), "test")
+                t0 = time.perf_counter()
+                h = pipe.localize_image(image, pr)
+                ms.append((time.perf_counter() - t0) * 1e3)
+                err = float(haversine_km(la, lo, h.lat, h.lon)) * 1000.0
+                rows.append((err, h.status, h.protection_m, h.p_correct, h.status_reason))
+                records.setdefault("queries", []).append(
+                    (cname, pname, f, la, lo, [(c.lat, c.lon, c.inliers)
+                                               for c in h.candidates[:40]],
+                     err, h.status, h.protection_m, h.p_correct, h.inlier_ratio))
+            out[(cname, pname)] = (rows, statistics.median(ms))
+    return out
+
+
+def report(res: dict) -> bool:
+    ok = True
+    print("\n| condition | prior | fixes | fixes > 50 m off | HMI | median PL of fixes (m) "
+          "| fix errors (m) | median ms |")
+    print("|---|---|---|---|---|---|---|---|")
+    pls = []
+    for (cname, pname), (rows, ms) in res.items():
+        fixes = [r for r in rows if r[1] == "fix"]
+        bad = sum(r[0] > 50 for r in fixes)
+        hmi = sum(r[0] > r[2] for r in fixes)
+        pls += [r[2] for r in fixes]
+        med = f"{statistics.median([r[2] for r in fixes]):.0f}" if fixes else "-"
+        errs = sorted(round(r[0]) for r in fixes)
+        print(f"| {cname} | {pname} | {len(fixes)} | {bad} | {hmi} | {med} | {errs} | {ms:.0f} |")
+        need = 8 if cname == "full" else 7 if cname == "fit640x480" else 0
+        ok &= bad == 0 and hmi == 0 and len(fixes) >= need
+    med = statistics.median(pls) if pls else float("nan")
+    print(f"\nmedian protection level of all fixes {med:.1f} m (target <= 40)")
+    return ok and med <= 40
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--map", required=True, type=Path)
+    ap.add_argument("--data", type=Path, default=SF)
+    ap.add_argument("--no-calibrate", action="store_true", help="use the map's calibration")
+    ap.add_argument("--overhead-only", action="store_true",
+                    help="only the added per-query work (microseconds)")
+    ap.add_argument("--save", type=Path, help="pickle the per-query records here")
+    ap.add_argument("--study", type=int, default=0, metavar="N",
+                    help="first a leave-one-out study with N degraded queries per condition")
+    args = ap.parse_args()
+    if args.overhead_only:
+        print(f"added per-query work (support spread + conditions check): {overhead():.0f} us")
+        return 0
+    if not (args.data / "queries.csv").is_file():
+        print(f"{args.data}: no SF night data; nothing measured")
+        return 0
+    if args.study:
+        study(args.map, args.data, args.study)
+    if not args.no_calibrate:
+        t1 = calibrate(args.map, args.data, "full")
+        t4 = calibrate(args.map, args.data, ",".join(QUERY_CONDITIONS))
+        print(f"calibration cost: four conditions {t4:.1f} s vs full size only {t1:.1f} s "
+              f"= {t4 / t1:.2f}x (target <= 3x)")
+    print(f"added per-query work (support spread + conditions check): {overhead():.0f} us")
+    records: dict = {}
+    res = run_queries(args.map, args.data, records)
+    ok = report(res)
+    if args.save:
+        args.save.write_bytes(pickle.dumps(records))
+    print("targets met" if ok else "TARGETS NOT MET")
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
