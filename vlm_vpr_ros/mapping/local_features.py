@@ -20,16 +20,20 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 
 from vlm_vpr_ros.config import from_mapping
-from vlm_vpr_ros.errors import MapError
+from vlm_vpr_ros.errors import ImageDecodeError, MapError
+from vlm_vpr_ros.files.images import load_image
 from vlm_vpr_ros.localization.verification.components import (create_feature, create_matcher,
                                                               one_blas_thread)
 from vlm_vpr_ros.localization.verification.p_correct import loo_calibration, save_doc
-from vlm_vpr_ros.localization.verification.conditions import parse_conditions
+from vlm_vpr_ros.localization.verification.conditions import parse_condition, parse_conditions
 from vlm_vpr_ros.localization.verification.evidence import EvidenceConfig
 from vlm_vpr_ros.localization.verification.geometry import GeometryConfig, fundamental_inliers
 from vlm_vpr_ros.localization.verification.presets import (VerifierPreset, get_preset,
                                                            preset_for_map)
 from vlm_vpr_ros.localization.verification.sift import RootSift
+from vlm_vpr_ros.localization.verification.stage import Verifier
+from vlm_vpr_ros.maps.map_images import images_folder
+from vlm_vpr_ros.maps.reference_map import descriptor_for_map
 from vlm_vpr_ros.maps.features import (FeatureStore, attach_features, make_section,
                                        write_submap_features)
 from vlm_vpr_ros.types import LocalFeatures
@@ -210,12 +214,6 @@ def _degraded_queries(ref_map: Any, conds: Sequence[str], images_dir: str | Path
     """(``degraded(row)`` for :func:`~.calibration.loo_records`, a one-element list that the
     calls fill with the smallest frame's longer side); (None, []) when no condition needs
     images or the images are not reachable."""
-    from vlm_vpr_ros.errors import ImageDecodeError
-    from vlm_vpr_ros.files.images import load_image
-    from vlm_vpr_ros.localization.verification.conditions import parse_condition
-    from vlm_vpr_ros.localization.verification.stage import Verifier
-    from vlm_vpr_ros.maps.map_images import images_folder
-
     others = [parse_condition(c) for c in conds if c != "full"]
     if not others:
         return None, []
@@ -226,8 +224,6 @@ def _degraded_queries(ref_map: Any, conds: Sequence[str], images_dir: str | Path
                     "--reference-images)", ref_map.path, ",".join(c.name for c in others))
         return None, []
     if descriptor is None:
-        from vlm_vpr_ros.maps.reference_map import descriptor_for_map
-
         descriptor = descriptor_for_map(ref_map, None, None)
     verifier = Verifier(ref_map, {"top_k": max(1, top_k)})
     if not verifier.enabled:

@@ -36,7 +36,7 @@ from rclpy.node import Node
 from rclpy.task import Future
 
 from vlm_vpr_ros.errors import ConfigError, VlmVprError
-from vlm_vpr_ros.runtime.params import requested_parameters
+from vlm_vpr_ros.runtime.params import NESTED, PARAMETER_SPECS, requested_parameters
 from vlm_vpr_ros.runtime.worker import MAX_WAITERS
 from vlm_vpr_ros.ros.malloc import tune_malloc
 from vlm_vpr_ros.ros.wiring import _Wiring
@@ -162,8 +162,6 @@ def _fatal(logger, exc: Exception) -> int:
 def usage(lifecycle: bool = False) -> str:
     """``--help``: how to start the node and every parameter (name, type, default, range or
     choices, runtime-writable, description), from the schema the node declares."""
-    from vlm_vpr_ros.runtime.params import NESTED, PARAMETER_SPECS
-
     exe = "vlm_vpr_lifecycle_node" if lifecycle else "vlm_vpr_node"
     lines = [f"usage: {exe} [--help] --ros-args -p map_dir:=MAP [-p name:=value ...] "
              "[--params-file FILE]",

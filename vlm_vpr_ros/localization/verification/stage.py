@@ -28,6 +28,7 @@ from vlm_vpr_ros.localization.verification.components import (LocalFeatureExtrac
                                                               create_feature, create_matcher,
                                                               one_blas_thread)
 from vlm_vpr_ros.localization.verification.conditions import ConditionWatch
+from vlm_vpr_ros.localization.verification.status import horizontal_sigma, k_risk
 from vlm_vpr_ros.localization.verification.p_correct import (PCorrect, load_doc,
                                                              support_spread_m, verified_radius)
 from vlm_vpr_ros.localization.verification.evidence import EvidenceConfig, spread_radii, weigh
@@ -332,8 +333,6 @@ class Verifier:
         the prior gate rules out) plus the calibrated residual; for any other the larger of that
         and the 1 - integrity_risk radius of its own Gaussian (its radii); NaN on an
         uncalibrated map (no integrity claim)."""
-        from vlm_vpr_ros.localization.verification.status import horizontal_sigma, k_risk
-
         m = self.model
         if not m.calibrated:
             return math.nan
