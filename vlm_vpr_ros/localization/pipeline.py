@@ -47,10 +47,13 @@ def verify_and_stamp(hyp: Hypothesis, local: LocalFeatures | None, verifier: Ver
     calibrated = not localizer.calibration_source.startswith("none")
     if verifier is not None and hyp.candidates:
         model = localizer.error_model_for(hyp.prior) if hyp.prior is not None else None
+        def weigh(h: Hypothesis) -> None:  # a prior with its own sigma: weight + guard
+            if prior_trust.applies(h, policy):
+                prior_trust.weigh_trusted_prior(h)
+
         verifier.verify(hyp, local, model, trust_prior=policy.trusts(hyp),
-                        level=policy.fix_min_p_correct, radii_calibrated=calibrated)
-        if prior_trust.applies(hyp, policy):  # a prior with its own sigma: weight + guard
-            prior_trust.weigh_trusted_prior(hyp, verifier.model, policy.fix_min_p_correct)
+                        level=policy.fix_min_p_correct, radii_calibrated=calibrated,
+                        weigh_prior=weigh)
     elif "unverified" not in hyp.flags:
         hyp.flags = tuple(hyp.flags) + ("unverified",)
         hyp.verification = hyp.verification or "unverified: verification off"

@@ -2,9 +2,10 @@
 it may add to a verified answer, and the guard against one that lies about its sigma (pure).
 
 Applies to answers whose prior carries ``sigma_km`` when the status policy trusts such priors
-(``trust_operator_prior``; :meth:`StatusPolicy.trusts`). Called by the pipeline right after
-verification, before the status rule, so every output sees the same ``p_correct`` and radii
-(a higher ``p_correct`` narrows the radii as verification does: ``verified_radius``).
+(``trust_operator_prior``; :meth:`StatusPolicy.trusts`). Called by the verifier (``weigh_prior``,
+given by the pipeline) once the candidates are ranked, before the radii and the protection
+level are derived from ``p_correct``, so every output sees the same ``p_correct``, radii and
+protection level.
 
 **Weight.** Geometry alone gives ``p_correct_without_prior`` (pu) for the winner against its
 strongest competitor farther than the place radius (25 m). A prior with its own sigma says how

@@ -18,7 +18,7 @@ import threading
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -268,11 +268,14 @@ class Verifier:
 
     def verify(self, hyp: Hypothesis, query: LocalFeatures | None, error_model: Any = None,
                trust_prior: bool = False, level: float = 0.95,
-               radii_calibrated: bool = True) -> None:
+               radii_calibrated: bool = True,
+               weigh_prior: Callable[[Hypothesis], None] | None = None) -> None:
         """Verify ``hyp``'s top K candidates in place (module docstring); the inlier matches
         of the re-ranked top K are kept in ``hyp.matches`` (for drawing). ``radii_calibrated``:
         whether the posterior's radii are calibrated on this map (else an answer that geometry
-        does not support gets the candidates' spread as its radii)."""
+        does not support gets the candidates' spread as its radii). ``weigh_prior``: sets
+        ``p_correct`` of the ranked answer from a trusted prior with its own sigma
+        (:mod:`.prior_trust`) before the radii and the protection level are derived from it."""
         if not self.enabled or query is None or not hyp.candidates:
             why = self.unavailable or ("no query features" if query is None else "no match")
             hyp.verification = f"unverified: {why}"
@@ -299,6 +302,9 @@ class Verifier:
         hyp.inliers, hyp.inlier_ratio = ev.winner_inliers, ev.score
         shift_m = float(haversine_km(old.lat, old.lon, best.lat, best.lon)) * 1000.0
         hyp.lat, hyp.lon, hyp.ref_id = best.lat, best.lon, best.ref_id
+        if weigh_prior is not None:
+            weigh_prior(hyp)
+            p = hyp.p_correct
         p_radius = p if trust_prior else pu  # an untrusted prior narrows no radius
         fb68 = hyp.uncertainty_m + shift_m
         fb95 = (hyp.radius95_m if math.isfinite(hyp.radius95_m) else fb68) + shift_m
