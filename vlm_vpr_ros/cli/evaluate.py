@@ -24,7 +24,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         print(f"GeoJSON: {args.geojson} ({n} points)", file=sys.stderr)
     integ = integrity.evaluate_integrity(  # docs/evaluation.md "Integrity"
         args.results, args.ground_truth, alert_m,
-        args.integrity_out or integrity.default_out_dir(args.results), args.overwrite)
+        args.integrity_out or integrity.default_out_dir(args.results), args.overwrite,
+        **extra["integrity"])
     if args.json:
         print(json.dumps({**summary, "recall_pct": extra["recall_pct"], "fixes": extra["fixes"],
                           "coverage68_pct": round(extra["coverage_pct"], 2),

@@ -31,8 +31,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable, Iterator, Sequence
 
+import numpy as np
+
 from vlm_vpr_ros.errors import ConfigError, DataError
 from vlm_vpr_ros.evaluation.integrity_plot import plot_stanford
+from vlm_vpr_ros.evaluation.metrics import read_ground_truth
 from vlm_vpr_ros.files.atomic import atomic_write_json
 from vlm_vpr_ros.files.csvio import strict_float
 from vlm_vpr_ros.files.outputs import StagedOutput
@@ -134,13 +137,19 @@ def time_series(trials: Sequence[Trial], t_start: float | None = None,
     """Time to first fix and the longest gaps; None when no trial has a time. ``longest_gap_s``:
     between consecutive fixes (None with fewer than 2); ``longest_outage_s``: also counting
     start → first fix and last fix → end (the whole span without any fix)."""
-    times = [t.t_s for t in trials if t.t_s is not None and math.isfinite(t.t_s)]
-    if not times:
+    cols = columns_of(trials)
+    return _time_series(cols.t_s, cols.fix, t_start, t_end)
+
+
+def _time_series(t_s: np.ndarray, fix: np.ndarray, t_start: float | None,
+                 t_end: float | None) -> dict | None:
+    """:func:`time_series` of the columns (NaN: no time)."""
+    has = np.isfinite(t_s)
+    if not has.any():
         return None
-    start = min(times) if t_start is None else t_start
-    end = max(times) if t_end is None else t_end
-    fixes = sorted(t.t_s for t in trials if t.fix and t.t_s is not None
-                   and math.isfinite(t.t_s))
+    start = float(t_s[has].min()) if t_start is None else t_start
+    end = float(t_s[has].max()) if t_end is None else t_end
+    fixes = sorted(float(x) for x in t_s[has & fix])
     gaps = [b - a for a, b in zip(fixes, fixes[1:])]
     edges = [start, *fixes, end]
     return {"span_s": round(end - start, 3),
@@ -153,62 +162,100 @@ def _rate(n: int, d: int) -> float | None:
     return round(n / d, 6) if d else None
 
 
-def integrity_report(trials: Sequence[Trial], alert_limit_m: float = DEFAULT_ALERT_LIMIT_M,
+@dataclass
+class Columns:
+    """Trials as arrays (a results CSV of millions of rows): ``err_m`` NaN when the error is
+    unknown, ``pl`` NaN without a usable protection level, ``t_s`` NaN without a time,
+    ``scene`` an id per distinct scene of ``sources`` (:func:`scene_of`)."""
+
+    err_m: np.ndarray
+    fix: np.ndarray
+    pl: np.ndarray
+    scene: np.ndarray
+    t_s: np.ndarray
+    sources: frozenset[str]
+
+
+def columns_of(trials: Sequence[Trial]) -> Columns:
+    """The columns of ``trials`` (scene ids numbered in order of appearance)."""
+    ids: dict[tuple[str, str], int] = {}
+    nan = math.nan
+    n = len(trials)
+    err, pl, t_s = np.full(n, nan), np.full(n, nan), np.full(n, nan)
+    fix, scene = np.zeros(n, bool), np.zeros(n, np.int64)
+    for k, t in enumerate(trials):
+        e = t.error_m
+        err[k] = nan if e is None else e
+        pl[k] = nan if t.protection_m is None else t.protection_m
+        t_s[k] = nan if t.t_s is None else t.t_s
+        fix[k] = t.fix
+        scene[k] = ids.setdefault(scene_of(t), len(ids))
+    return Columns(err, fix, pl, scene, t_s, frozenset(src for src, _ in ids))
+
+
+def integrity_report(trials: Sequence[Trial] | Columns,
+                     alert_limit_m: float = DEFAULT_ALERT_LIMIT_M,
                      t_start: float | None = None, t_end: float | None = None,
                      pl_column: bool | None = None, pl_invalid: int = 0) -> dict:
     """The integrity numbers of ``trials`` (JSON-ready). The protection level is available when
     any trial has a usable one; ``pl_column``: whether the input had a protection_m column
     (reported; None: unknown); ``pl_invalid``: junk PL values seen."""
     al = check_alert_limit(alert_limit_m)
-    trials = list(trials)
-    scored = [t for t in trials if t.error_m is not None]
-    fixes = [t for t in scored if t.fix]
-    errs = [t.error_m for t in fixes]
-    counts = dict.fromkeys((*REGIONS, "no_pl"), 0)
-    for t in scored:
-        counts[region(t, al)] += 1
-    pls = [t.protection_m for t in fixes if t.protection_m is not None]
-    has_pl = any(t.protection_m is not None for t in trials)
-    gt_pl = [t for t in fixes if t.protection_m is not None and t.error_m > t.protection_m]
-    gt_al = [t for t in fixes if t.error_m > al]
-    hmi = [t for t in scored if region(t, al) == "hazardously_misleading"]
-    scenes = _scenes(scored, {"hmi": hmi, "error_gt_pl": gt_pl, "error_gt_al": gt_al})
-    n_fix = len(fixes)
+    c = trials if isinstance(trials, Columns) else columns_of(list(trials))
+    with np.errstate(invalid="ignore"):
+        scored = np.isfinite(c.err_m)
+        fixes = scored & c.fix
+        has_pl = np.isfinite(c.pl)
+        avail = fixes & (c.pl < al)  # a fix with a usable PL below the alert limit
+        hmi = avail & (c.err_m > al)
+        mi = avail & ~hmi & (c.err_m > c.pl)
+        counts = {"nominal": int(np.sum(avail & ~hmi & ~mi)), "misleading": int(mi.sum()),
+                  "hazardously_misleading": int(hmi.sum()),
+                  "unavailable": int(np.sum(scored & (~c.fix | (has_pl & (c.pl >= al))))),
+                  "no_pl": int(np.sum(fixes & ~has_pl))}
+        gt_pl = fixes & has_pl & (c.err_m > c.pl)
+        gt_al = fixes & (c.err_m > al)
+        pl_ge_al = int(np.sum(fixes & has_pl & (c.pl >= al)))
+    errs, pls = np.sort(c.err_m[fixes]), np.sort(c.pl[fixes & has_pl])
+    n, n_fix, n_all_fix = len(c.fix), int(fixes.sum()), int(c.fix.sum())
+    scenes = _scenes(c, scored, {"hmi": hmi, "error_gt_pl": gt_pl, "error_gt_al": gt_al})
     return {
-        "alert_limit_m": al, "answers": len(trials), "scored": len(scored),
-        "fixes": sum(t.fix for t in trials), "fixes_scored": n_fix,
-        "availability_pct": (round(100.0 * sum(t.fix for t in trials) / len(trials), 2)
-                             if trials else None),
-        "accuracy_m": {"p50": _r(nearest_rank(errs, 50)), "p95": _r(nearest_rank(errs, 95)),
-                       "max": _r(max(errs) if errs else None)},
-        "protection_level": {"available": has_pl, "column": pl_column,
-                             "fixes_with_pl": len(pls), "median_m": _r(nearest_rank(pls, 50)),
+        "alert_limit_m": al, "answers": n, "scored": int(scored.sum()),
+        "fixes": n_all_fix, "fixes_scored": n_fix,
+        "availability_pct": round(100.0 * n_all_fix / n, 2) if n else None,
+        "accuracy_m": {"p50": _r(_rank(errs, 50)), "p95": _r(_rank(errs, 95)),
+                       "max": _r(errs[-1] if len(errs) else None)},
+        "protection_level": {"available": bool(has_pl.any()), "column": pl_column,
+                             "fixes_with_pl": len(pls), "median_m": _r(_rank(pls, 50)),
                              "invalid_values": pl_invalid},
         "regions": counts,
         # published as FIX although PL >= AL: in "unavailable" (DO-229), named apart
-        "fixes_pl_at_or_above_al": sum(t.protection_m is not None and t.protection_m >= al
-                                       for t in fixes),
-        "hmi": {"count": len(hmi), "per_fix": _rate(len(hmi), n_fix)},
-        "error_gt_pl": {"count": len(gt_pl), "per_fix": _rate(len(gt_pl), n_fix)},
-        "error_gt_al": {"count": len(gt_al), "per_fix": _rate(len(gt_al), n_fix)},
+        "fixes_pl_at_or_above_al": pl_ge_al,
+        "hmi": {"count": int(hmi.sum()), "per_fix": _rate(int(hmi.sum()), n_fix)},
+        "error_gt_pl": {"count": int(gt_pl.sum()), "per_fix": _rate(int(gt_pl.sum()), n_fix)},
+        "error_gt_al": {"count": int(gt_al.sum()), "per_fix": _rate(int(gt_al.sum()), n_fix)},
         "scenes": scenes,
-        "time": time_series(trials, t_start, t_end),
+        "time": _time_series(c.t_s, c.fix, t_start, t_end),
     }
+
+
+def _rank(sorted_values: np.ndarray, pct: float) -> float | None:
+    """:func:`nearest_rank` of values already sorted."""
+    n = len(sorted_values)
+    return float(sorted_values[max(0, math.ceil(pct / 100.0 * n) - 1)]) if n else None
 
 
 def _r(x: float | None) -> float | None:
     return None if x is None else round(float(x), 1)
 
 
-def _scenes(scored: Sequence[Trial], bad: dict[str, list[Trial]]) -> dict:
-    of = {id(t): scene_of(t) for t in scored}
-    sources = sorted({s for s, _ in of.values()})
-    all_ids = set(of.values())  # (source, id): a key never equals a cell by accident
-    with_fix = {of[id(t)] for t in scored if t.fix}
-    out = {"source": "+".join(sources) or "none", "n": len(all_ids), "with_fix": len(with_fix)}
-    for name, items in bad.items():
-        ids = {of[id(t)] for t in items}
-        out[name] = {"count": len(ids), "per_scene_with_fix": _rate(len(ids), len(with_fix))}
+def _scenes(c: Columns, scored: np.ndarray, bad: dict[str, np.ndarray]) -> dict:
+    with_fix = len(np.unique(c.scene[scored & c.fix]))
+    out = {"source": "+".join(sorted(c.sources)) or "none",
+           "n": len(np.unique(c.scene[scored])), "with_fix": with_fix}
+    for name, mask in bad.items():
+        k = len(np.unique(c.scene[mask]))
+        out[name] = {"count": k, "per_scene_with_fix": _rate(k, with_fix)}
     return out
 
 
@@ -272,23 +319,7 @@ def read_trials(results_csv: str | os.PathLike[str],
 
 # -- output --------------------------------------------------------------------------------------
 
-def stanford_points(trials: Sequence[Trial], alert_limit_m: float
-                    ) -> tuple[list[tuple[float, float, bool]], dict[str, int]]:
-    """The Stanford diagram's points (PL, error, is a fix) and its counts per region, ``no_pl``
-    for fixes without a protection level (drawn by :func:`plot_stanford`)."""
-    counts = dict.fromkeys((*REGIONS, "no_pl"), 0)
-    points = []
-    for t in trials:
-        reg = region(t, alert_limit_m)
-        if reg is None:
-            continue
-        counts[reg] += 1
-        if t.protection_m is not None:
-            points.append((t.protection_m, t.error_m, t.fix))
-    return points, counts
-
-
-def write_report(out_dir: str | os.PathLike[str], rep: dict, trials: Sequence[Trial],
+def write_report(out_dir: str | os.PathLike[str], rep: dict, trials: Sequence[Trial] | Columns,
                  title: str = "", overwrite: bool = False, staged: bool = True,
                  final_dir: str | os.PathLike[str] | None = None) -> dict:
     """``integrity.json`` and ``stanford.png`` in ``out_dir``; returns ``{name: path}``.
@@ -297,9 +328,10 @@ def write_report(out_dir: str | os.PathLike[str], rep: dict, trials: Sequence[Tr
     ``out_dir`` is a folder being built already (evaluate-bag's staging folder) that becomes
     ``final_dir`` (the paths returned and written into the JSON)."""
     final = Path(out_dir if staged or final_dir is None else final_dir)
+    cols = trials if isinstance(trials, Columns) else columns_of(list(trials))
 
     def write(folder: Path) -> dict:
-        png = plot_stanford(folder / PNG_NAME, *stanford_points(trials, rep["alert_limit_m"]),
+        png = plot_stanford(folder / PNG_NAME, cols.pl, cols.err_m, cols.fix, rep["regions"],
                             rep["alert_limit_m"], title)
         paths = {"integrity_json": str(final / JSON_NAME),
                  "stanford_png": str(final / png.name)}
@@ -318,17 +350,21 @@ def evaluate_integrity(results_csv: str | os.PathLike[str],
                        truth: str | os.PathLike[str] | dict[str, LatLon],
                        alert_limit_m: float = DEFAULT_ALERT_LIMIT_M,
                        out_dir: str | os.PathLike[str] | None = None,
-                       overwrite: bool = False) -> dict:
+                       overwrite: bool = False, columns: Columns | None = None,
+                       pl_column: bool | None = None, pl_invalid: int = 0) -> dict:
     """``vlm-vpr evaluate``'s integrity report of a results CSV; with ``out_dir`` its JSON and
     Stanford diagram are written there (an existing folder without ``overwrite``: a warning,
-    nothing written, ``outputs`` empty). ``truth``: the ground-truth CSV or its rows."""
-    if not isinstance(truth, dict):
-        from vlm_vpr_ros.evaluation.metrics import read_ground_truth
-
-        truth = read_ground_truth(truth)
-    trials, info = read_trials(results_csv, truth)
-    rep = integrity_report(trials, alert_limit_m, pl_column=info["pl_column"],
-                           pl_invalid=info["pl_invalid"])
+    nothing written, ``outputs`` empty). ``truth``: the ground-truth CSV or its rows.
+    ``columns`` (with ``pl_column``, ``pl_invalid``): the trials as read already by
+    ``vlm-vpr evaluate``'s streamed pass (:mod:`.results_csv`; millions of rows)."""
+    if columns is not None:
+        trials: Sequence[Trial] | Columns = columns
+    else:
+        if not isinstance(truth, dict):
+            truth = read_ground_truth(truth)
+        trials, info = read_trials(results_csv, truth)
+        pl_column, pl_invalid = info["pl_column"], info["pl_invalid"]
+    rep = integrity_report(trials, alert_limit_m, pl_column=pl_column, pl_invalid=pl_invalid)
     rep["outputs"] = {}
     if out_dir is not None:
         try:

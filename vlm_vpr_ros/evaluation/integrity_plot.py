@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Mapping, Sequence
+from typing import Mapping
 
 import numpy as np
 
@@ -24,23 +24,23 @@ _LABELS = {"nominal": "nominal", "misleading": "misleading (MI)",
            "unavailable": "unavailable"}
 
 
-def plot_stanford(path: str | os.PathLike[str], points: Sequence[tuple[float, float, bool]],
-                  counts: Mapping[str, int], alert_limit_m: float, title: str = "",
-                  dpi: int = 110) -> Path:
-    """Write the Stanford diagram to ``path`` (PNG); returns the path. ``points``: (protection
-    level m, error m, is a fix) of the answers that have a protection level; ``counts``: the
-    answers per region (:data:`vlm_vpr_ros.evaluation.integrity.REGIONS`) and ``no_pl`` (fixes
-    without a protection level), as the report counted them."""
+def plot_stanford(path: str | os.PathLike[str], pl: np.ndarray, err: np.ndarray,
+                  fix: np.ndarray, counts: Mapping[str, int], alert_limit_m: float,
+                  title: str = "", dpi: int = 110) -> Path:
+    """Write the Stanford diagram to ``path`` (PNG); returns the path. ``pl``, ``err``, ``fix``:
+    protection level (m, NaN: none), error (m, NaN: unknown) and fix flag of every answer (those
+    with both are drawn); ``counts``: the answers per region
+    (:data:`vlm_vpr_ros.evaluation.integrity.REGIONS`) and ``no_pl`` (fixes without a
+    protection level), as the report counted them."""
     plt = _pyplot()
     from matplotlib.colors import LogNorm
 
     lo, hi = AXIS_M
     al = float(alert_limit_m)
     hi = max(hi, 4.0 * al)
-    fix_xy, other_xy = [], []
-    for pl, err, fix in points:
-        xy = (min(max(pl, lo), hi), min(max(err, lo), hi))
-        (fix_xy if fix else other_xy).append(xy)
+    drawn = np.isfinite(pl) & np.isfinite(err)
+    xy = np.clip(np.stack([pl[drawn], err[drawn]], axis=1), lo, hi)
+    fix_xy, other_xy = xy[fix[drawn]], xy[~fix[drawn]]
     fig, ax = plt.subplots(figsize=(7.2, 6.0))
     ax.set_xscale("log")
     ax.set_yscale("log")
@@ -55,12 +55,12 @@ def plot_stanford(path: str | os.PathLike[str], points: Sequence[tuple[float, fl
     ax.plot([lo, hi], [lo, hi], color="#333333", lw=0.9, ls="-", label="error = protection level")
     ax.axvline(al, color="#b71c1c", lw=1.1, ls="--", label=f"alert limit {al:g} m")
     ax.plot([lo, al], [al, al], color="#b71c1c", lw=1.1, ls="--")
-    if other_xy:
-        o = np.asarray(other_xy)
+    if len(other_xy):
+        o = other_xy
         ax.scatter(o[:, 0], o[:, 1], marker="x", s=14, lw=0.7, color="#9e9e9e", zorder=3,
                    label=f"not a fix (NO_FIX): {len(other_xy)}")
-    if fix_xy:
-        f = np.asarray(fix_xy)
+    if len(fix_xy):
+        f = fix_xy
         from matplotlib.ticker import FuncFormatter
 
         bins = np.logspace(np.log10(lo), np.log10(hi), 33)

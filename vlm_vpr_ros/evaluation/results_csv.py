@@ -30,6 +30,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from vlm_vpr_ros.errors import DataError
+from vlm_vpr_ros.evaluation.integrity import Columns
 from vlm_vpr_ros.evaluation.metrics import RECALL_AT, _top_positions, summarize_array
 from vlm_vpr_ros.files.csvio import NUMBER, parse_latlon, stream_rows
 from vlm_vpr_ros.geodesy import THRESHOLDS_KM, haversine_km
@@ -157,6 +158,7 @@ def evaluate_results_csv(results_csv: Any, ground_truth_csv: Any,
     names, lines = array("q"), array("q")
     base_rows, bases = array("q"), array("q")  # rows whose file name has a folder part
     est, radii, flags = array("d"), array("d"), array("b")
+    pls, scenes, pl_invalid = array("d"), array("q"), 0  # the integrity report's columns
     junk: dict[str, int] = dict.fromkeys(JUNK, 0)
     examples: list[tuple[int, str]] = []
     has_status = has95 = False
@@ -167,6 +169,7 @@ def evaluate_results_csv(results_csv: Any, ground_truth_csv: Any,
         c_st, c_p, c_fl = col.get("status"), col.get("p_correct"), col.get("flags")
         c_68, c_95, c_top = col.get("uncertainty_m"), col.get("radius95_m"), \
             col.get("top_positions")
+        c_pl = col.get("protection_m")
         for line, row in rows:
             if len(row) < width:
                 row += [""] * (width - len(row))
@@ -198,6 +201,12 @@ def evaluate_results_csv(results_csv: Any, ground_truth_csv: Any,
                 base_rows.append(len(lines))
                 bases.append(hash(os.path.basename(name)))
             names.append(hash(name))
+            scenes.append(hash(os.path.basename(name)))
+            pl = num(row[c_pl]) if c_pl is not None else nan
+            if pl is None or pl < 0.0 or pl == inf:  # junk protection level: none, counted
+                pl_invalid += 1
+                pl = nan
+            pls.append(pl)
             lines.append(line)
             est.extend((la, lo))
             radii.extend((r68, r95))
@@ -262,7 +271,13 @@ def evaluate_results_csv(results_csv: Any, ground_truth_csv: Any,
         log.warning("%s: %d junk row(s) counted, not scored: %s; e.g. %s", results_csv,
                     sum(bad.values()), ", ".join(f"{JUNK[k]} {v}" for k, v in bad.items()),
                     shown[0])
-    extra = {"coverage_pct": cov[0], "coverage95_pct": cov[1] if has95 else None,
+    fix_sel = (fl & 1).astype(bool)
+    columns = Columns(errs * 1000.0, fix_sel, np.frombuffer(pls, dtype=np.float64)[sel],
+                      np.frombuffer(scenes, dtype=np.int64)[sel], np.full(n, nan),
+                      frozenset({"key"}))
+    extra = {"integrity": {"columns": columns, "pl_column": c_pl is not None,
+                           "pl_invalid": pl_invalid},
+             "coverage_pct": cov[0], "coverage95_pct": cov[1] if has95 else None,
              "flagged": int(((fl >> 1) & 1).sum()), "missing_gt": missing,
              "errors_km": ErrorList(errs), "junk_rows": sum(bad.values()), "junk": bad,
              "junk_examples": shown, "recall_pct": recall, "fixes": fixes}
