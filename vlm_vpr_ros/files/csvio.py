@@ -142,6 +142,16 @@ def strict_float(value: object) -> float | None:
     return None
 
 
+def parse_number(value: object, where: str, field: str) -> float:
+    """A finite number or a DataError naming ``where`` (``file:line``), the field and value."""
+    x = strict_float(value)
+    if x is None:
+        raise DataError(f"{where}: {field} {value!r} is not a number")
+    if not math.isfinite(x):
+        raise DataError(f"{where}: {field} {value} is out of range")
+    return x
+
+
 def parse_latlon(lat: object, lon: object, where: str) -> tuple[float, float]:
     """Finite WGS-84 degrees or a DataError naming ``where`` (``file:line``) and the value."""
     la, lo = strict_float(lat), strict_float(lon)
