@@ -120,6 +120,7 @@ def test_calibration_doc_counts_conditions_and_both_versions_load():
 
 
 # -- issue 28: no verified evidence, honest radii ---------------------------------------------
+@pytest.mark.fault("no_evidence_twice_mapped")
 def test_no_evidence_on_a_map_with_one_picture_twice_claims_no_small_radius(demo_data, tmp_path,
                                                                           caplog):
     """A map holding one picture twice at one place has leave-one-out pairs, so its posterior

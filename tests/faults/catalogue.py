@@ -349,4 +349,12 @@ CATALOGUE: dict[str, tuple[str, str, str]] = {
     "out_details_csv": ("output", "`priors score --details X`: X a user's CSV, a folder, the "
                                   "answers or ground truth themselves",
                         "exit 2 before any work, untouched; a details CSV of ours replaced"),
+    "no_evidence_twice_mapped": ("map", "a map with the same picture twice at one place; "
+                                        "queries 32x32, 8000x100, 10x4000 with 0 inliers",
+                                 "no_fix with the candidates' spread as radii (> 100 km), no "
+                                 "protection level under the alert limit"),
+    "debug_strip_frame": ("node", "`publish_debug` with a 10000x10 frame; a picture JPEG cannot "
+                                  "hold",
+                          "the debug picture encodes (panel width bounded); an oversized one "
+                          "is refused in one line naming its size, no raw OpenCV line"),
 }

@@ -9,35 +9,6 @@ from pathlib import Path
 
 import pytest
 
-from faults.catalogue import CATALOGUE
-
-_results: dict[str, str] = {}
-
-
-def pytest_configure(config) -> None:
-    config.addinivalue_line("markers", "fault(id): a fault-catalogue case (tests/faults)")
-
-
-@pytest.hookimpl(hookwrapper=True)
-def pytest_runtest_makereport(item, call):
-    outcome = yield
-    rep = outcome.get_result()
-    mark = item.get_closest_marker("fault")
-    if mark is not None and (rep.when == "call" or rep.failed or rep.skipped):
-        prev = _results.get(mark.args[0])
-        if prev in (None, "passed"):
-            _results[mark.args[0]] = rep.outcome
-
-
-def pytest_terminal_summary(terminalreporter) -> None:
-    if not _results:
-        return
-    failed = sorted(k for k, v in _results.items() if v == "failed")
-    terminalreporter.write_line(
-        f"fault suite: {len(_results)} of {len(CATALOGUE)} cases tried, "
-        f"{len(failed)} failed (crash / data lost / secret leaked): {failed or 'none'}")
-
-
 def sha_tree(*paths: Path) -> dict[str, str]:
     """sha256 of every file under ``paths`` (the user's data, hashed before and after)."""
     out = {}
