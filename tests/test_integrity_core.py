@@ -12,11 +12,12 @@ import pytest
 from vlm_vpr_ros.errors import ConfigError, MapError
 from vlm_vpr_ros.geodesy import haversine_km
 from vlm_vpr_ros.localization.verification.p_correct import (
-    INTEGRITY_RISK, PCorrect, calibration_doc, support_spread_m, validate)
+    INTEGRITY_RISK, PCorrect, calibration_doc, loo_records, support_spread_m, validate)
 from vlm_vpr_ros.localization.verification.conditions import (DEFAULT_CONDITIONS,
                                                               ConditionWatch, parse_condition,
                                                               parse_conditions)
 from vlm_vpr_ros.localization.verification.evidence import EvidenceConfig
+from vlm_vpr_ros.mapping.local_features import photo_copies
 from vlm_vpr_ros.localization.verification.status import (K_RISK, StatusPolicy, fix_status,
                                                           horizontal_sigma)
 from vlm_vpr_ros.types import Hypothesis
@@ -118,6 +119,35 @@ def test_calibration_doc_counts_conditions_and_both_versions_load():
     with pytest.raises(MapError, match="conditions"):
         validate(dict(doc, conditions=[]), "t")
 
+
+
+def test_leave_one_out_leaves_out_every_copy_of_the_photo():
+    """A photo stored twice (here at a look-alike place 5,000 km away) is left out with its
+    copies: the held-out photo never meets itself; the other photo of the place still meets
+    both copies of its pair, so the ambiguity stays in the calibration."""
+    vecs = np.array([[1, 0, 0], [0, 1, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float32)
+    copies = photo_copies([vecs[:3], vecs[3:]])  # two "submaps": rows count globally
+    assert copies == {0: (2,), 2: (0,), 1: (3,), 3: (1,)}
+    assert photo_copies([vecs[4:], vecs[:1]]) == {}
+    # rows 0, 1 at X; their copies 2, 3 at Y 5,000 km away; row 4 elsewhere
+    coords = np.array([[37.77, -122.42], [37.7701, -122.42], [-33.87, 151.2],
+                       [-33.8701, 151.2], [48.85, 2.35]])
+
+    def search(g, k):  # by descriptor: the copies first (distance 0), then the rest
+        d = ((vecs - vecs[g]) ** 2).sum(1)
+        return sorted((float(d[j]), j) for j in range(5))[:k]
+
+    def inliers_of(q, refs):  # identical photos match best, same place next
+        return np.array([300 if r is q else 60 for r in refs])
+
+    feats = [object() for _ in range(5)]
+    kw = dict(features_of=lambda g: feats[g], inliers_of=inliers_of, top_k=2, max_queries=5)
+    seen = {qi: cand for _, qi, cand, _ in loo_records(coords, search, **kw,
+                                                       copies_of=lambda g: copies.get(g, ()))}
+    assert all(j not in (qi, *copies.get(qi, ())) for qi, cand in seen.items() for j in cand)
+    assert set(seen[0]) == {1, 3}  # the place's other photo and its look-alike copy: a tie
+    old = {qi: cand for _, qi, cand, _ in loo_records(coords, search, **kw)}
+    assert old[0][0] == 2  # without the rule the photo meets itself at the look-alike
 
 # -- issue 28: no verified evidence, honest radii ---------------------------------------------
 @pytest.mark.fault("no_evidence_twice_mapped")

@@ -50,7 +50,7 @@ def test_robot_navsat_is_the_prior_and_bad_messages_are_ignored(demo_map, demo_d
 
     rgb = load_image(demo_data / "images" / QUERY)
     params = {"map_dir": str(demo_map), "prior_provider": "none", "mode": "on_trigger",
-              "prior_topic": "gps/fix", "prior_topic_type": "navsat",
+              "qos": "reliable", "prior_topic": "gps/fix", "prior_topic_type": "navsat",
               "prior_topic_growth_m_per_s": 2.0, "prior_topic_max_age_s": 60.0,
               "trust_operator_prior": True}
     node = NodeProcess(params, tmp_path / "node.log", 154).start()

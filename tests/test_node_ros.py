@@ -205,7 +205,7 @@ def test_dead_vlm_gives_flagged_fixes_then_recovers(demo_map, tmp_path, rgb):
     dom = domain_id()
     with ChatServer("500", fail_times=0, lat=TRUTH[0] + 0.1, lon=TRUTH[1]) as srv:
         params = {"map_dir": str(demo_map), "prior_provider": "openai",
-                  "prior.base_url": srv.base_url, "prior.max_retries": 0,
+                  "prior.base_url": srv.base_url, "prior.max_retries": 0, "qos": "reliable",
                   "min_period_s": 0.2, "diagnostics_period_s": 0.5, "frame_id": "vpr_camera"}
         with node_and_client(params, tmp_path / "node.log", dom) as (node, client):
             stamps = Stamps()

@@ -11,11 +11,12 @@ calibration (images: ``build-map``; bags: ``build-map --bag``; ``map add/remove`
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import time
 from dataclasses import replace
 from pathlib import Path
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
@@ -158,6 +159,9 @@ def calibrate_map(ref_map: Any, max_queries: int = LOO_QUERIES, top_k: int = 20,
         return vectors[si][j:j + 1]
 
     everything = list(range(len(ref_map.submaps)))
+    copies = photo_copies(np.asarray(ref_map.submaps[si].vectors(), np.float32)
+                          for si in everything)
+    extra = max((len(c) for c in copies.values()), default=0)
 
     def search(g: int, k: int) -> list[tuple[float, int]]:
         found = ref_map.search_submaps(everything, vec(g), k)
@@ -178,7 +182,8 @@ def calibrate_map(ref_map: Any, max_queries: int = LOO_QUERIES, top_k: int = 20,
         return out
 
     conds = [c.name for c in parse_conditions(conditions)]
-    degraded, smallest = _degraded_queries(ref_map, conds, images_dir, descriptor, top_k,
+    degraded, smallest = _degraded_queries(ref_map, conds, images_dir, descriptor,
+                                           top_k + extra,
                                            search_vec=lambda v, k: [
                                                (d, int(starts[si] + j)) for d, si, j in
                                                ref_map.search_submaps(everything, v, k)])
@@ -194,7 +199,8 @@ def calibrate_map(ref_map: Any, max_queries: int = LOO_QUERIES, top_k: int = 20,
         doc = loo_calibration(coords, search, features_of, inliers_of, top_k,
                               EvidenceConfig(), max_queries, seed,
                               (lambda d, n: bar.update(1)) if bar is not None else None,
-                              conds, degraded, n_deg)
+                              conds, degraded, n_deg,
+                              copies_of=lambda g: copies.get(g, ()))
     if bar is not None:
         bar.close()
     doc["min_long_side_px"] = int(smallest[0]) if smallest else 0
@@ -206,6 +212,21 @@ def calibrate_map(ref_map: Any, max_queries: int = LOO_QUERIES, top_k: int = 20,
              "%s, %.1f s", loo["queries"], loo["wrong"], loo["right"], ",".join(conds),
              time.monotonic() - t0)
     return doc
+
+
+def photo_copies(blocks: Iterable[np.ndarray]) -> dict[int, tuple[int, ...]]:
+    """Rows (global order over ``blocks``, e.g. the submaps' descriptors) whose global
+    descriptors are bit-identical: the same photograph stored more than once, e.g. at a
+    look-alike place. {row: the other rows of its group}, only for rows that have copies.
+    Exact byte equality: no tolerance that a CPU's rounding could move."""
+    groups: dict[bytes, list[int]] = {}
+    g = 0
+    for block in blocks:
+        for row in np.ascontiguousarray(block):
+            groups.setdefault(hashlib.sha256(row.tobytes()).digest(), []).append(g)
+            g += 1
+    return {g: tuple(o for o in rows if o != g)
+            for rows in groups.values() if len(rows) > 1 for g in rows}
 
 
 def _degraded_queries(ref_map: Any, conds: Sequence[str], images_dir: str | Path | None,

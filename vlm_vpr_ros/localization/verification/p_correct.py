@@ -36,7 +36,7 @@ import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any, Callable, Collection, Mapping, Sequence
 
 import numpy as np
 
@@ -158,11 +158,20 @@ def loo_records(coords: np.ndarray, search: Callable[[int, int], list[tuple[floa
                 top_k: int, cfg: EvidenceConfig = EvidenceConfig(), max_queries: int = 150,
                 seed: int = 0, progress: Callable[[int, int], None] | None = None,
                 conditions: Sequence[str] = ("full",), degraded: Degraded | None = None,
-                degraded_queries: int | None = None) -> list[LooRecord]:
+                degraded_queries: int | None = None,
+                copies_of: Callable[[int], Collection[int]] | None = None) -> list[LooRecord]:
     """The leave-one-out queries (:func:`loo_calibration`): ``full`` queries with the stored
     features of up to ``max_queries`` references; the other ``conditions`` through
     ``degraded(row)`` (the degraded copies of that reference's image, described and searched)
-    on ``degraded_queries`` of the same references (default: all of them)."""
+    on ``degraded_queries`` of the same references (default: all of them).
+
+    ``copies_of(row)``: the other rows that hold the *same photograph* (bit-identical global
+    descriptors), left out with the query. A held-out photo still in the map under another
+    position is no independent view of anything: it would match itself, a thing no real
+    query does, and make a copy at a look-alike place 5,000 km away look like a confident
+    wrong answer. The ambiguity such copies carry is still calibrated: the *other* photos of
+    the place meet both copies, with equal inliers (``search`` and ``degraded`` must return
+    ``top_k`` + 1 + the largest number of copies rows)."""
     coords = np.asarray(coords, np.float64)
     rng = np.random.default_rng(seed)
     rows = sample_queries(coords, max_queries, cfg.place_radius_m, rng) if len(coords) > 2 \
@@ -176,16 +185,16 @@ def loo_records(coords: np.ndarray, search: Callable[[int, int], list[tuple[floa
     out: list[LooRecord] = []
 
     def one(cond: str, qi: int, found: list[tuple[float, int]], feat: LocalFeatures) -> None:
-        # only the query itself is left out: a copy of its image elsewhere in the map (a
-        # re-upload at another position, a look-alike) is what real queries meet too
-        cand = [j for _, j in found if j != qi][:top_k]
+        left_out = {qi, *(copies_of(qi) if copies_of is not None else ())}
+        cand = [j for _, j in found if j not in left_out][:top_k]
         if cand:
             out.append((cond, qi, cand, np.asarray(
                 inliers_of(feat, [features_of(j) for j in cand]), np.int64)))
 
     for done, (cond, qi) in enumerate(jobs):
         if cond == "full":
-            one(cond, qi, search(qi, top_k + 1), features_of(qi))
+            extra = len(copies_of(qi)) if copies_of is not None else 0
+            one(cond, qi, search(qi, top_k + 1 + extra), features_of(qi))
         else:
             for name, (found, feat) in degraded(qi).items():
                 if name in others:
@@ -217,17 +226,20 @@ def loo_calibration(coords: np.ndarray, search: Callable[[int, int], list[tuple[
                     progress: Callable[[int, int], None] | None = None,
                     conditions: Sequence[str] = ("full",), degraded: Degraded | None = None,
                     degraded_queries: int | None = None,
-                    min_long_side_px: int = 0) -> dict[str, Any]:
+                    min_long_side_px: int = 0,
+                    copies_of: Callable[[int], Collection[int]] | None = None
+                    ) -> dict[str, Any]:
     """The build-time calibration (module docstring) as a JSON-ready dict.
 
     ``coords``: (n, 2) positions of the references (global row order); ``search(row, k)``: the
     k nearest references of ``row`` by descriptor as (squared distance, row), itself included;
     ``features_of(row)``; ``inliers_of(query, refs)``: verified inlier counts; ``conditions``,
     ``degraded``, ``degraded_queries``: the query conditions (:func:`loo_records`);
-    ``min_long_side_px``: the smallest degraded frame's longer side (0: full size only)."""
+    ``min_long_side_px``: the smallest degraded frame's longer side (0: full size only);
+    ``copies_of``: other rows of the same photograph, left out with it (:func:`loo_records`)."""
     t0 = time.monotonic()
     recs = loo_records(coords, search, features_of, inliers_of, top_k, cfg, max_queries, seed,
-                       progress, conditions, degraded, degraded_queries)
+                       progress, conditions, degraded, degraded_queries, copies_of)
     done = sorted({r[0] for r in recs} | ({"full"} if "full" in conditions else set()),
                   key=list(conditions).index)
     return calibration_doc(recs, coords, top_k, cfg, done, min_long_side_px,
