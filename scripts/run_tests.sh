@@ -4,7 +4,14 @@ set -uo pipefail
 cd "$(dirname "$0")/.."
 export AMENT_PREFIX_PATH="$(pwd)/.venv${AMENT_PREFIX_PATH:+:$AMENT_PREFIX_PATH}"
 export PYTHONUNBUFFERED=1
-.venv/bin/python -m pytest -q -ra "$@"
+# two workers by default (VLM_VPR_TEST_WORKERS=0: one process); files that share an expensive
+# fixture run on one worker (tests/conftest.py GROUPS)
+workers="${VLM_VPR_TEST_WORKERS:-2}"
+parallel=()
+if [ "$workers" != "0" ] && .venv/bin/python -c "import xdist" 2>/dev/null; then
+  parallel=(-n "$workers" --dist loadgroup)
+fi
+.venv/bin/python -m pytest -q -ra "${parallel[@]}" "$@"
 rc=$?
 if [ "$rc" -eq 5 ]; then echo "pytest collected no tests" >&2; fi
 exit "$rc"

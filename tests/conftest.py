@@ -22,15 +22,32 @@ def pytest_configure(config) -> None:
     config.addinivalue_line("markers", "fault(id): a fault-catalogue case (tests/faults)")
 
 
+#: test files that share an expensive session fixture run on one pytest-xdist worker
+#: (scripts/run_tests.sh runs ``-n 2 --dist loadgroup``); every other file is its own group,
+#: so module fixtures and the fixed ROS_DOMAIN_IDs of a file stay on one worker
+GROUPS = {"test_real_sf_night.py": "sf_night", "test_real_sf_night_robot_prior.py": "sf_night"}
+
+
+def pytest_collection_modifyitems(items) -> None:
+    for item in items:
+        name = item.path.name
+        item.add_marker(pytest.mark.xdist_group(GROUPS.get(name, str(item.path))))
+
+
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_makereport(item, call):
     outcome = yield
     rep = outcome.get_result()
     mark = item.get_closest_marker("fault")
-    if mark is not None and (rep.when == "call" or rep.failed or rep.skipped):
-        prev = _results.get(mark.args[0])
-        if prev in (None, "passed"):
-            _results[mark.args[0]] = rep.outcome
+    if mark is not None:  # carried to the controller with the report (pytest-xdist)
+        rep.user_properties.append(("fault", mark.args[0]))
+
+
+def pytest_runtest_logreport(report) -> None:
+    case = dict(report.user_properties).get("fault")
+    if case is not None and (report.when == "call" or report.failed or report.skipped):
+        if _results.get(case) in (None, "passed"):
+            _results[case] = report.outcome
 
 
 def pytest_terminal_summary(terminalreporter) -> None:
@@ -54,6 +71,23 @@ def shared_dir() -> Path:
     if not (SHARED / "data").is_dir():
         pytest.skip("../shared is absent (real-data checks only run in the project workspace)")
     return SHARED
+
+
+@pytest.fixture(scope="session")
+def sf_night_map(shared_dir, tmp_path_factory) -> tuple[Path, Path]:
+    """(``../shared/data/sf_night``, a map of its 332 references: kmeans, 10 clusters, the
+    default verification calibration), built once for the tests that need it (the "sf_night"
+    xdist group); ``VLM_VPR_SF_MAP`` may name such a map to skip the build."""
+    from vlm_vpr_ros.mapping.build_images import build_map
+
+    root = shared_dir / "data" / "sf_night"
+    given = os.environ.get("VLM_VPR_SF_MAP")
+    if given:
+        return root, Path(given)
+    out = tmp_path_factory.mktemp("sf") / "map"
+    build_map(root, root / "database.csv", out, partition="kmeans", clusters=10,
+              progress=False)
+    return root, out
 
 
 @pytest.fixture(scope="session")

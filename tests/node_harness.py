@@ -30,7 +30,14 @@ DOMAIN_RANGE = (60, 100)
 
 
 def domain_id() -> int:
+    """A domain for one test graph: under pytest-xdist each worker (gw0, gw1, ...) cycles
+    through its own slice of :data:`DOMAIN_RANGE`, so two workers never share a graph."""
     lo, hi = DOMAIN_RANGE
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "")
+    if worker.startswith("gw"):
+        count = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+        span = (hi - lo + 1) // max(1, count)
+        return lo + (int(worker[2:]) % count) * span + next(_counter) % span
     return lo + (os.getpid() * 7 + next(_counter)) % (hi - lo + 1)
 
 

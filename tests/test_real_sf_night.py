@@ -5,17 +5,13 @@ import pytest
 
 from vlm_vpr_ros.geodesy import haversine_km
 from vlm_vpr_ros.files.images import load_image
-from vlm_vpr_ros.mapping.build_images import build_map, read_coords_csv
+from vlm_vpr_ros.mapping.build_images import read_coords_csv
 from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
 
 
 @pytest.fixture(scope="module")
-def sf(shared_dir, tmp_path_factory):
-    root = shared_dir / "data" / "sf_night"
-    out = tmp_path_factory.mktemp("sf") / "map"
-    build_map(root, root / "database.csv", out, partition="kmeans", clusters=10,
-              progress=False)
-    return root, out
+def sf(sf_night_map):
+    return sf_night_map
 
 
 def test_sf_night_recall_within_25m(sf):

@@ -7,7 +7,6 @@ built from the same data (kmeans, 10 clusters) to skip the build."""
 
 from __future__ import annotations
 
-import os
 import sys
 from pathlib import Path
 
@@ -17,13 +16,11 @@ REPO = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.timeout(3000)
 
 
-def test_robot_prior_fixes_and_the_guard_against_a_lying_sigma(shared_dir, tmp_path):
+def test_robot_prior_fixes_and_the_guard_against_a_lying_sigma(sf_night_map, tmp_path):
     sys.path.insert(0, str(REPO / "benchmarks"))
     from robot_prior_sf_night import run
 
-    data = shared_dir / "data" / "sf_night"
-    given = os.environ.get("VLM_VPR_SF_MAP")
-    map_dir = Path(given) if given else tmp_path / "sf_map"
+    data, map_dir = sf_night_map
     res = run(data, map_dir, tmp_path / "work")
     print(f"\nSF night robot prior: {res}")
     none, honest, lying = res["none"], res["honest"], res["lying"]
