@@ -114,3 +114,44 @@ def test_sqlite3_without_timestamp_index_uses_recovery(written, tmp_path):
     bag = open_bag(copy)
     assert bag.recovered == [copy / "bag.db3"]
     assert _read(bag) == _expected(plan) and bag.complete
+
+
+def test_damaged_chunk_read_up_to_the_damage(tmp_path):
+    """A CRC-failing chunk whose first stamp equals the last stamp of the chunk before: rosbags
+    loads that chunk before yielding the equal stamp, so the recovery reader takes over and
+    the read is every message of the intact chunks before it, exactly."""
+    from mcap.reader import breakup_chunk
+    from mcap.records import Chunk, Message
+    from mcap.stream_reader import StreamReader
+    from mcap.writer import CompressionType, Writer
+
+    src = tmp_path / "crc.mcap"
+    plan = [("/a" if i % 2 else "/b", 10**18 + (i // 2) * 10**6, _cdr_string(str(i) * (i % 7 + 1)
+                                                                            * 40))
+            for i in range(400)]
+    with open(src, "wb") as fh:
+        w = Writer(fh, compression=CompressionType.NONE, chunk_size=3000)  # stores chunk CRCs
+        w.start(profile="ros2")
+        sid = w.register_schema(STRING, "ros2msg", b"string data")
+        chans = {t: w.register_channel(t, "cdr", sid) for t in ("/a", "/b")}
+        for topic, t, data in plan:
+            w.add_message(chans[topic], t, data, t)
+        w.finish()
+    with open(src, "rb") as fh:  # (offset, first stamp, messages before it) per chunk
+        chunks, before, last_t = [], 0, None
+        for rec in StreamReader(fh, emit_chunks=True).records:
+            if isinstance(rec, Chunk):
+                msgs = [r for r in breakup_chunk(rec) if isinstance(r, Message)]
+                chunks.append((msgs[0].log_time, before, last_t))
+                before, last_t = before + len(msgs), msgs[-1].log_time
+    k = next(i for i, (first, _, prev_last) in enumerate(chunks) if i > 2 and first == prev_last)
+    data = bytearray(src.read_bytes())
+    marker = plan[chunks[k][1] + 1][2]  # a message inside chunk k: flip a byte of it
+    data[data.index(marker) + 10] ^= 0xFF
+    (tmp_path / "flip.mcap").write_bytes(bytes(data))
+    expected = _expected(plan)[:chunks[k][1]]
+    for recovery in (False, True):
+        bag = open_bag(tmp_path / "flip.mcap", recovery=recovery)
+        assert bag.recovered == ([tmp_path / "flip.mcap"] if recovery else [])
+        assert _read(bag) == expected and not bag.complete
+        assert "corrupt MCAP data" in " ".join(bag.problems)

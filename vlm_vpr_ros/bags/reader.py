@@ -8,6 +8,9 @@ on the file itself). Only what rosbags cannot do is hand-written, in
 * reading a damaged file **up to the damage**: rosbags refuses to open a truncated MCAP (no
   footer/summary) and gives nothing, the recovery reader yields every message recorded before
   the cut and records the problem;
+* reading on where rosbags stops inside a file (a chunk failing its CRC): rosbags loads a
+  chunk before it yields the equal stamps of the chunk before, so it would lose intact
+  messages; the recovery reader skips the messages already yielded and reads to the damage;
 * files rosbags refuses although they are readable (an MCAP with another profile, a file it
   raises on for any reason): the recovery reader reads them whole and reports nothing;
 * sqlite3 files without an index on ``messages.timestamp``: rosbags asks for ``ORDER BY
@@ -37,6 +40,7 @@ import os
 import sqlite3
 from contextlib import closing
 from dataclasses import dataclass, field
+from itertools import islice
 from pathlib import Path
 from typing import Any, Iterable, Iterator
 
@@ -106,7 +110,8 @@ class BagReader:
             return
         for f in self.files:
             rows = (recover.messages(f, self.storage, want, self._problem)
-                    if f in self.recovered else _rosbags_messages(f, want, self._problem))
+                    if f in self.recovered
+                    else _rosbags_messages(f, self.storage, want, self._problem))
             for topic, type_, t, data in rows:
                 yield RawMessage(topic, type_, t, data)
 
@@ -240,10 +245,9 @@ def _time_indexed(f: Path) -> bool:
     BY timestamp`` walks it and equal stamps come in row id order)."""
     try:
         with closing(recover.connect(f)) as db:
-            names = [n for (n,) in db.execute("SELECT name FROM sqlite_master WHERE "
-                                              "type = 'index' AND tbl_name = 'messages'")]
-            return any(db.execute("SELECT name FROM pragma_index_info(?) WHERE seqno = 0",
-                                  (n,)).fetchone() == ("timestamp",) for n in names)
+            return db.execute("SELECT 1 FROM pragma_index_list('messages') AS l, "
+                              "pragma_index_info(l.name) AS i WHERE i.seqno = 0 AND "
+                              "i.name = 'timestamp'").fetchone() is not None
     except sqlite3.Error:
         return False
 
@@ -267,32 +271,26 @@ def _rosbags_topics(f: Path, storage: str) -> list[recover.TopicRow] | None:
         return None
 
 
-def _rosbags_messages(f: Path, want: set[str] | None,
+def _rosbags_messages(f: Path, storage: str, want: set[str] | None,
                       problem: recover.Problem) -> Iterator[recover.MessageRow]:
-    """Messages of one storage file through rosbags; an error while reading ends the file there
-    (everything before it has been yielded, in order) and is recorded as a problem."""
+    """Messages of one storage file through rosbags. If rosbags raises while reading (a damaged
+    chunk or page), the recovery reader takes over after the messages already yielded: it
+    follows the same order and reads up to the damage itself (rosbags loads the next chunk
+    before yielding an equal stamp of the previous one, so it would stop one message early),
+    and it records the problem."""
     from rosbags.rosbag2 import Reader
 
+    n = 0
     try:
-        reader = Reader(f)
-        reader.open()
-    except Exception as exc:  # noqa: BLE001 - it opened when listed: changed since
-        problem(f"{f.name}: cannot be read any more ({type(exc).__name__}: {exc})")
-        return
-    try:
-        conns = [c for c in reader.connections if want is None or c.topic in want]
-        if not conns:  # (an empty selection means "all" to rosbags)
+        with Reader(f) as reader:
+            conns = [c for c in reader.connections if want is None or c.topic in want]
+            if not conns:  # (an empty selection means "all" to rosbags)
+                return
+            for conn, t, data in reader.messages(conns):
+                yield conn.topic, _msgtype(conn.msgtype), t, data
+                n += 1
             return
-        rows = reader.messages(conns)
-        while True:
-            try:
-                conn, t, data = next(rows)
-            except StopIteration:
-                return
-            except Exception as exc:  # noqa: BLE001 - damage found while reading
-                problem(f"{f.name}: corrupt {'MCAP' if f.suffix == '.mcap' else 'sqlite3'} data "
-                        f"({type(exc).__name__}: {exc}); later messages are lost")
-                return
-            yield conn.topic, _msgtype(conn.msgtype), t, data
-    finally:
-        reader.close()
+    except Exception as exc:  # noqa: BLE001 - rosbags' errors on damaged data vary
+        log.warning("rosbags stopped reading %s after %d messages (%s: %s); the recovery reader "
+                    "reads on", f, n, type(exc).__name__, exc)
+    yield from islice(recover.messages(f, storage, want, problem), n, None)

@@ -1,10 +1,12 @@
-"""The hand-written part of bag reading: files that rosbags refuses to open.
+"""The hand-written part of bag reading: files that rosbags refuses, and the rest of a file
+after rosbags stopped inside it.
 
 :mod:`vlm_vpr_ros.bags.reader` reads every storage file through rosbags first. rosbags opens a
 file only when it is whole: a truncated MCAP (no footer, no summary) or an MCAP with another
-profile raises ``ReaderError`` on open, and a rosbags error means "nothing from this file". The
-functions here read such a file **up to the damage** instead, so a half-recorded drive still
-gives its first part:
+profile raises ``ReaderError`` on open, and a rosbags error means "nothing from this file"; an
+error inside a file ends rosbags' read there, possibly before intact messages of equal stamp.
+The functions here read such a file **up to the damage** instead, so a half-recorded drive
+still gives its first part:
 
 * MCAP with a readable summary: the ``mcap`` library's indexed reader, messages in log-time
   order with ties in file position order (the same rule as rosbags), stopping at a damaged
@@ -15,6 +17,8 @@ gives its first part:
 * sqlite3: a plain read-only query ``ORDER BY timestamp, id`` (rosbags' ``ORDER BY timestamp``
   only gives this tie order when the ``timestamp`` index exists, see ``reader.py``).
 
+Reading stops at the first exception of any kind (the ``mcap`` library, zstd, lz4 and
+``struct`` each raise their own on damaged bytes), after everything before it was yielded.
 What went wrong is reported through the ``problem`` callback (the bag's ``problems`` list).
 Nothing here knows the reader's classes: topics come back as plain tuples
 ``(name, type, count, serialization_format, offered_qos_profiles)`` and messages as
@@ -24,8 +28,6 @@ Nothing here knows the reader's classes: topics come back as plain tuples
 from __future__ import annotations
 
 import sqlite3
-import struct
-import zlib
 from contextlib import closing
 from pathlib import Path
 from typing import Any, Callable, Iterator
@@ -35,10 +37,6 @@ from vlm_vpr_ros.errors import BagError
 Problem = Callable[[str], None]
 TopicRow = tuple[str, str, int, str, Any]
 MessageRow = tuple[str, str, int, bytes]
-
-_MCAP_ERRORS: tuple[type[BaseException], ...] = (ValueError, struct.error, EOFError, OSError,
-                                                 KeyError, zlib.error)
-
 
 def list_topics(f: Path, storage: str, problem: Problem) -> list[TopicRow]:
     """The topics of one storage file; BagError if it is not a bag file at all."""
@@ -52,25 +50,13 @@ def messages(f: Path, storage: str, want: set[str] | None,
 
 
 # -- MCAP ---------------------------------------------------------------------------------------
-def _mcap_errors() -> tuple[type[BaseException], ...]:
-    """What reading damaged MCAP data raises: mcap's own errors, struct/zlib/OS errors, and the
-    chunk decompressors' (zstandard's ``ZstdError``; lz4 raises ``RuntimeError``)."""
-    from mcap import stream_reader
-    from mcap.exceptions import McapError
-
-    zstd = getattr(stream_reader, "zstandard", None)
-    lz4 = getattr(stream_reader, "lz4", None)
-    return ((McapError,) + _MCAP_ERRORS + ((zstd.ZstdError,) if zstd is not None else ())
-            + ((RuntimeError,) if lz4 is not None else ()))
-
-
 def _summary(f: Path) -> Any:
     from mcap.reader import make_reader
 
     with open(f, "rb") as fh:
         try:
             return make_reader(fh).get_summary()
-        except _mcap_errors():
+        except Exception:  # noqa: BLE001 - no usable summary: read the records one by one
             return None
 
 
@@ -119,7 +105,7 @@ def _stream(f: Path, want: set[str] | None, problem: Problem) -> Iterator[tuple]
                     topic, type_ = chans[rec.channel_id]
                     if want is None or topic in want:
                         yield ("message", topic, type_, rec.log_time, bytes(rec.data))
-        except _mcap_errors() as exc:
+        except Exception as exc:  # noqa: BLE001 - whatever damaged data raises ends the file
             problem(f"{f.name}: damaged or truncated MCAP after the last complete record "
                     f"({type(exc).__name__}: {exc}); later messages are lost")
 
@@ -137,7 +123,7 @@ def _iter_mcap(f: Path, want: set[str] | None, problem: Problem) -> Iterator[Mes
             reader = make_reader(fh, validate_crcs=True)
             for schema, ch, m in reader.iter_messages(topics=sorted(want) if want else None):
                 yield ch.topic, schema.name if schema else "", int(m.log_time), bytes(m.data)
-        except _mcap_errors() as exc:
+        except Exception as exc:  # noqa: BLE001 - as above (mcap, zstd, lz4, struct errors)
             problem(f"{f.name}: corrupt MCAP data ({type(exc).__name__}: {exc}); "
                     "later messages are lost")
 
