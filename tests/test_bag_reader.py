@@ -101,6 +101,7 @@ def test_truncated_mcap_keeps_what_was_read(raw_bag, tmp_path, fraction):
     bag = open_bag(cut)  # header intact: opens, reports the damage
     got = [(m.topic, m.log_time_ns, m.data) for m in bag.messages()]
     assert not bag.complete and "truncated" in " ".join(bag.problems)
+    assert bag.recovered == [cut]  # rosbags refuses a truncated MCAP: the recovery reader read
     assert got == full[:len(got)]  # an exact prefix: nothing garbled
     if fraction < 0:
         assert len(got) == len(full)  # only the summary was lost

@@ -1,10 +1,36 @@
 """Reading rosbag2 bags: MCAP folders (``metadata.yaml``), single ``.mcap`` files and sqlite3
 ``.db3`` bags, with clear errors and partial reads.
 
-A truncated or corrupt file does not raise in the middle of a run: :meth:`BagReader.messages`
-yields every message read before the damage and records what went wrong in
-:attr:`BagReader.problems` (also logged). Missing topics/types raise :class:`BagError` listing
-what the bag has.
+**Who reads what.** Every storage file is read by rosbags (``rosbags.rosbag2.Reader`` opened
+on the file itself). Only what rosbags cannot do is hand-written, in
+:mod:`vlm_vpr_ros.bags.recover`:
+
+* reading a damaged file **up to the damage**: rosbags refuses to open a truncated MCAP (no
+  footer/summary) and gives nothing, the recovery reader yields every message recorded before
+  the cut and records the problem;
+* reading on where rosbags stops inside a file (a chunk failing its CRC): rosbags loads a
+  chunk before it yields the equal stamps of the chunk before, so it would lose intact
+  messages; the recovery reader skips the messages already yielded and reads to the damage;
+* files rosbags refuses although they are readable (an MCAP with another profile, a file it
+  raises on for any reason): the recovery reader reads them whole and reports nothing;
+* sqlite3 files without an index on ``messages.timestamp``: rosbags asks for ``ORDER BY
+  timestamp`` only, which orders equal stamps by row id through that index (rosbag2 and rosbags
+  both create it) but in no stated order without it.
+
+``metadata.yaml`` only names the storage files: rosbags' folder reader trusts it and real bags'
+metadata lies (``storage_identifier: ''`` makes it raise; QoS text that differs from the
+file's makes it match no connection and silently yield nothing), so each file is opened alone.
+
+**Order.** File by file in the bag's file order; within a file by log time, equal log times in
+file order (MCAP: position in the file, sqlite3: row id, i.e. the order of recording). This
+holds on both paths: rosbags merges MCAP chunks by (log time, chunk offset) and sorts stably
+within a chunk, the ``mcap`` library used by the recovery reader does the same, and sqlite3
+is read in (timestamp, id) order. A truncated MCAP has no index; it is read in file order.
+
+**Damage.** A truncated or corrupt file does not raise in the middle of a run:
+:meth:`BagReader.messages` yields every message read before the damage and records what went
+wrong in :attr:`BagReader.problems` (also logged). Missing topics/types raise
+:class:`BagError` listing what the bag has.
 """
 
 from __future__ import annotations
@@ -12,14 +38,15 @@ from __future__ import annotations
 import logging
 import os
 import sqlite3
-import struct
-import zlib
+from contextlib import closing
 from dataclasses import dataclass, field
+from itertools import islice
 from pathlib import Path
 from typing import Any, Iterable, Iterator
 
 import yaml
 
+from vlm_vpr_ros.bags import recover
 from vlm_vpr_ros.bags.messages import message_class
 from vlm_vpr_ros.errors import BagError
 
@@ -55,6 +82,8 @@ class BagReader:
     topics: dict[str, TopicInfo] = field(default_factory=dict)
     metadata: dict | None = None
     problems: list[str] = field(default_factory=list)
+    #: storage files read by the hand-written recovery reader instead of rosbags
+    recovered: list[Path] = field(default_factory=list)
 
     @property
     def complete(self) -> bool:
@@ -74,13 +103,17 @@ class BagReader:
             log.warning("%s", text)
 
     def messages(self, topics: Iterable[str] | None = None) -> Iterator[RawMessage]:
-        """Serialized messages of ``topics`` (all by default) in time order per file."""
+        """Serialized messages of ``topics`` (all by default): file by file, each by log time
+        with equal times in file order (see the module docstring)."""
         want = set(topics) if topics is not None else None
         if want is not None and not want:
             return
-        reader = _iter_mcap if self.storage == "mcap" else _iter_db3
         for f in self.files:
-            yield from reader(self, f, want)
+            rows = (recover.messages(f, self.storage, want, self._problem)
+                    if f in self.recovered
+                    else _rosbags_messages(f, self.storage, want, self._problem))
+            for topic, type_, t, data in rows:
+                yield RawMessage(topic, type_, t, data)
 
     def find_topic(self, types: Iterable[str], topic: str | None = None,
                    what: str = "topic") -> TopicInfo:
@@ -132,9 +165,10 @@ def _read_metadata(folder: Path) -> dict | None:
         return None
 
 
-def open_bag(path: str | os.PathLike[str]) -> BagReader:
+def open_bag(path: str | os.PathLike[str], *, recovery: bool = False) -> BagReader:
     """Open a bag folder (rosbag2 MCAP or sqlite3, with or without ``metadata.yaml``) or a single
-    ``.mcap``/``.db3`` file and list its topics."""
+    ``.mcap``/``.db3`` file and list its topics. ``recovery=True`` reads every file with the
+    hand-written recovery reader instead of rosbags (tests and benchmarks compare the two)."""
     path = Path(path)
     meta = None
     if path.is_dir():
@@ -159,22 +193,36 @@ def open_bag(path: str | os.PathLike[str]) -> BagReader:
                        "rosbag2 MCAP (.mcap) and sqlite3 (.db3)")
     bag = BagReader(path, kinds.pop(), files, metadata=meta)
     for f in files:
-        (_list_mcap if bag.storage == "mcap" else _list_db3)(bag, f)
+        rows = None if recovery else _rosbags_topics(f, bag.storage)
+        if rows is None:
+            bag.recovered.append(f)
+            rows = recover.list_topics(f, bag.storage, bag._problem)
+        for row in rows:
+            _add_topic(bag, *row)
     return bag
 
 
-def parse_qos(text_or_list: Any) -> list[dict]:
-    """Offered QoS profiles from bag metadata (a YAML string, or a list in metadata version 9);
-    malformed input gives an empty list (callers then use defaults)."""
-    if isinstance(text_or_list, list):
-        return [p for p in text_or_list if isinstance(p, dict)]
-    if not text_or_list:
-        return []
-    try:
-        data = yaml.safe_load(text_or_list)
-    except yaml.YAMLError:
-        return []
-    return [p for p in data if isinstance(p, dict)] if isinstance(data, list) else []
+def parse_qos(profiles: Any) -> list[dict]:
+    """Offered QoS profiles as plain dicts (enum values by lower-case name, durations as
+    ``{"sec", "nsec"}``), from rosbags' parsed profiles or the raw metadata (a YAML string, or
+    a list in metadata version 9); malformed input gives an empty list (callers then use
+    defaults)."""
+    from rosbags.rosbag2.metadata import parse_qos as rosbags_parse_qos
+
+    if isinstance(profiles, list) and all(hasattr(p, "_asdict") for p in profiles):
+        parsed = profiles
+    else:
+        try:
+            parsed = rosbags_parse_qos(profiles) if profiles else []
+        except Exception:  # noqa: BLE001 - any malformed text/structure means "no QoS known"
+            return []
+
+    def plain(value: Any) -> Any:
+        if hasattr(value, "_asdict"):
+            return {k: plain(v) for k, v in value._asdict().items()}
+        return value.name.lower() if hasattr(value, "name") else value
+
+    return [plain(p) for p in parsed]
 
 
 def _add_topic(bag: BagReader, name: str, type_: str, count: int | None, fmt: str = "cdr",
@@ -187,141 +235,62 @@ def _add_topic(bag: BagReader, name: str, type_: str, count: int | None, fmt: st
         bag.topics[name] = TopicInfo(name, type_, count, fmt, tuple(parse_qos(qos)))
 
 
-# -- MCAP ---------------------------------------------------------------------------------------
-_MCAP_ERRORS: tuple[type[BaseException], ...] = (ValueError, struct.error, EOFError, OSError,
-                                                 KeyError, zlib.error)
+# -- rosbags ------------------------------------------------------------------------------------
+def _msgtype(name: str) -> str:
+    return "" if name == "__schemaless__" else name  # rosbags' name for "no schema"
 
 
-def _mcap_errors() -> tuple[type[BaseException], ...]:
-    """What reading damaged MCAP data raises: mcap's own errors, struct/zlib/OS errors, and the
-    chunk decompressors' (zstandard's ``ZstdError``; lz4 raises ``RuntimeError``)."""
-    from mcap import stream_reader
-    from mcap.exceptions import McapError
-
-    zstd = getattr(stream_reader, "zstandard", None)
-    lz4 = getattr(stream_reader, "lz4", None)
-    return ((McapError,) + _MCAP_ERRORS + ((zstd.ZstdError,) if zstd is not None else ())
-            + ((RuntimeError,) if lz4 is not None else ()))
-
-
-def _summary(f: Path) -> Any:
-    from mcap.reader import make_reader
-
-    with open(f, "rb") as fh:
-        try:
-            return make_reader(fh).get_summary()
-        except _mcap_errors():
-            return None
-
-
-def _list_mcap(bag: BagReader, f: Path) -> None:
-    with open(f, "rb") as fh:
-        head = fh.read(8)
-    if head[:5] != b"\x89MCAP":
-        raise BagError(f"{f}: not an MCAP file (bad magic {head!r}); empty or corrupt")
-    summary = _summary(f)
-    if summary is not None:
-        counts = summary.statistics.channel_message_counts if summary.statistics else {}
-        for cid, ch in summary.channels.items():
-            schema = summary.schemas.get(ch.schema_id)
-            _add_topic(bag, ch.topic, schema.name if schema else "", counts.get(cid, 0),
-                       ch.message_encoding, ch.metadata.get("offered_qos_profiles"))
-        return
-    bag._problem(f"{f.name}: no MCAP summary (file truncated or not closed); reading it "
-                 "sequentially, messages after the damage are lost")
-    counts: dict[str, int] = {}
-    channels: dict[str, tuple[str, str, Any]] = {}
-    for kind, topic, type_, a, b in _stream(bag, f, None):
-        if kind == "channel":
-            channels.setdefault(topic, (type_, a, b))
-        else:
-            counts[topic] = counts.get(topic, 0) + 1
-    for topic, (type_, enc, qos) in channels.items():
-        _add_topic(bag, topic, type_, counts.get(topic, 0), enc, qos)
-
-
-def _stream(bag: BagReader, f: Path, want: set[str] | None) -> Iterator[tuple]:
-    """Sequential record pass (for files without a usable summary). Yields
-    ``("channel", topic, type, encoding, qos)`` and ``("message", topic, type, t_ns, data)``."""
-    from mcap.records import Channel, Message, Schema
-    from mcap.stream_reader import StreamReader
-
-    schemas: dict[int, str] = {}
-    chans: dict[int, tuple[str, str]] = {}
-    with open(f, "rb") as fh:
-        try:
-            for rec in StreamReader(fh, validate_crcs=True).records:
-                if isinstance(rec, Schema):
-                    schemas[rec.id] = rec.name
-                elif isinstance(rec, Channel):
-                    chans[rec.id] = (rec.topic, schemas.get(rec.schema_id, ""))
-                    yield ("channel", rec.topic, chans[rec.id][1], rec.message_encoding,
-                           rec.metadata.get("offered_qos_profiles"))
-                elif isinstance(rec, Message) and rec.channel_id in chans:
-                    topic, type_ = chans[rec.channel_id]
-                    if want is None or topic in want:
-                        yield ("message", topic, type_, rec.log_time, bytes(rec.data))
-        except _mcap_errors() as exc:
-            bag._problem(f"{f.name}: damaged or truncated MCAP after the last complete record "
-                         f"({type(exc).__name__}: {exc}); later messages are lost")
-
-
-def _iter_mcap(bag: BagReader, f: Path, want: set[str] | None) -> Iterator[RawMessage]:
-    from mcap.reader import make_reader
-
-    if _summary(f) is None:
-        for kind, topic, type_, t, data in _stream(bag, f, want):
-            if kind == "message":
-                yield RawMessage(topic, type_, int(t), data)
-        return
-    with open(f, "rb") as fh:
-        try:
-            reader = make_reader(fh, validate_crcs=True)
-            for schema, ch, m in reader.iter_messages(topics=sorted(want) if want else None):
-                yield RawMessage(ch.topic, schema.name if schema else "", int(m.log_time),
-                                 bytes(m.data))
-        except _mcap_errors() as exc:
-            bag._problem(f"{f.name}: corrupt MCAP data ({type(exc).__name__}: {exc}); "
-                         "later messages are lost")
-
-
-# -- sqlite3 ------------------------------------------------------------------------------------
-def _connect(f: Path) -> sqlite3.Connection:
-    uri = f"file:{f.resolve()}?mode=ro&immutable=1"
-    return sqlite3.connect(uri, uri=True)
-
-
-def _list_db3(bag: BagReader, f: Path) -> None:
+def _time_indexed(f: Path) -> bool:
+    """Whether a sqlite3 file has an index led by ``messages.timestamp`` (then rosbags' ``ORDER
+    BY timestamp`` walks it and equal stamps come in row id order)."""
     try:
-        with _connect(f) as db:
-            rows = db.execute("SELECT id, name, type, serialization_format, "
-                              "offered_qos_profiles FROM topics").fetchall()
-            counts = dict(db.execute("SELECT topic_id, COUNT(*) FROM messages "
-                                     "GROUP BY topic_id").fetchall())
-    except sqlite3.Error as exc:
-        raise BagError(f"{f}: not a readable rosbag2 sqlite3 file ({exc})") from None
-    for tid, name, type_, fmt, qos in rows:
-        _add_topic(bag, name, type_, int(counts.get(tid, 0)), fmt, qos)
+        with closing(recover.connect(f)) as db:
+            return db.execute("SELECT 1 FROM pragma_index_list('messages') AS l, "
+                              "pragma_index_info(l.name) AS i WHERE i.seqno = 0 AND "
+                              "i.name = 'timestamp'").fetchone() is not None
+    except sqlite3.Error:
+        return False
 
 
-def _iter_db3(bag: BagReader, f: Path, want: set[str] | None) -> Iterator[RawMessage]:
+def _rosbags_topics(f: Path, storage: str) -> list[recover.TopicRow] | None:
+    """The topics of one storage file as rosbags lists them; None where the recovery reader
+    has to read the file (rosbags raises, or a sqlite3 file lacks the timestamp index)."""
+    from rosbags.rosbag2 import Reader
+
+    if storage == "sqlite3" and not _time_indexed(f):
+        log.info("%s has no timestamp index; reading it with the recovery reader (row order "
+                 "for equal stamps)", f)
+        return None
     try:
-        db = _connect(f)
-    except sqlite3.Error as exc:
-        raise BagError(f"{f}: cannot open ({exc})") from None
+        with Reader(f) as reader:
+            return [(c.topic, _msgtype(c.msgtype), c.msgcount, c.ext.serialization_format,
+                     c.ext.offered_qos_profiles) for c in reader.connections]
+    except Exception as exc:  # noqa: BLE001 - whatever rosbags raises, the recovery reader tries
+        log.info("rosbags cannot open %s (%s: %s); reading it with the recovery reader", f,
+                 type(exc).__name__, exc)
+        return None
+
+
+def _rosbags_messages(f: Path, storage: str, want: set[str] | None,
+                      problem: recover.Problem) -> Iterator[recover.MessageRow]:
+    """Messages of one storage file through rosbags. If rosbags raises while reading (a damaged
+    chunk or page), the recovery reader takes over after the messages already yielded: it
+    follows the same order and reads up to the damage itself (rosbags loads the next chunk
+    before yielding an equal stamp of the previous one, so it would stop one message early),
+    and it records the problem."""
+    from rosbags.rosbag2 import Reader
+
+    n = 0
     try:
-        topics = {tid: (name, type_) for tid, name, type_ in
-                  db.execute("SELECT id, name, type FROM topics")}
-        ids = [tid for tid, (name, _) in topics.items() if want is None or name in want]
-        if not ids:
+        with Reader(f) as reader:
+            conns = [c for c in reader.connections if want is None or c.topic in want]
+            if not conns:  # (an empty selection means "all" to rosbags)
+                return
+            for conn, t, data in reader.messages(conns):
+                yield conn.topic, _msgtype(conn.msgtype), t, data
+                n += 1
             return
-        marks = ",".join("?" * len(ids))
-        cur = db.execute(f"SELECT topic_id, timestamp, data FROM messages WHERE topic_id IN "
-                         f"({marks}) ORDER BY timestamp, id", ids)
-        for tid, t, data in cur:
-            name, type_ = topics[tid]
-            yield RawMessage(name, type_, int(t), bytes(data))
-    except sqlite3.Error as exc:
-        bag._problem(f"{f.name}: corrupt sqlite3 data ({exc}); later messages are lost")
-    finally:
-        db.close()
+    except Exception as exc:  # noqa: BLE001 - rosbags' errors on damaged data vary
+        log.warning("rosbags stopped reading %s after %d messages (%s: %s); the recovery reader "
+                    "reads on", f, n, type(exc).__name__, exc)
+    yield from islice(recover.messages(f, storage, want, problem), n, None)
