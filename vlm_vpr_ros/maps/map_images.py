@@ -1,10 +1,19 @@
 """Reference images kept inside a map (teach maps built from a bag): ``MAP/images/<id>``,
 listed with size and sha256 in ``MAP/images/index.g<generation>.json`` (itself in the
-manifest's ``files``). Adding to such a map copies the new images in; removing deletes them."""
+manifest's ``files``). Adding to such a map copies the new images in; removing deletes them.
+
+Maps built from a folder of images (``build-map --images DIR``) keep no pictures but record
+where they came from: the manifest's ``source_images`` names the folder (absolute) and
+``source_images.json`` beside the manifest (listed in ``files``) the size and sha256 of every
+picture as the build read it. :class:`SourceImages` reads a picture from there (or from the
+folder a user names instead) only when its bytes are still those: a changed or missing picture
+is skipped with one WARN naming it, never shown in place of the one the map was built from."""
 
 from __future__ import annotations
 
+import hashlib
 import json
+import logging
 import os
 import shutil
 from pathlib import Path
@@ -12,25 +21,161 @@ from typing import Any, Mapping, Sequence
 
 from vlm_vpr_ros.errors import DataError, MapError
 from vlm_vpr_ros.files.atomic import atomic_path, atomic_write_json, file_sha256
-from vlm_vpr_ros.maps.format import MANIFEST, bad_ref_id, checked_file
+from vlm_vpr_ros.files.images import MAX_FILE_BYTES
+from vlm_vpr_ros.maps.format import MANIFEST, bad_ref_id, checked_file, file_table
 from vlm_vpr_ros.maps.reference_map import ReferenceMap
 from vlm_vpr_ros.maps.transaction import Transaction, edit_lock
 
+log = logging.getLogger(__name__)
 IMAGES_DIR = "images"
+#: the index of the pictures a map was built from (beside the manifest, listed in ``files``)
+SOURCE_INDEX = "source_images.json"
+_warned: set[tuple[str, ...]] = set()  # one WARN per (map, folder or picture, what)
+
+
+def _warn_once(key: tuple[str, ...], msg: str, *args: Any) -> None:
+    if key not in _warned:
+        _warned.add(key)
+        log.warning(msg, *args)
 
 
 def images_folder(map_dir: str | os.PathLike[str] | None, manifest: Mapping[str, Any],
-                  override: str | os.PathLike[str] = "") -> Path | None:
+                  override: str | os.PathLike[str] = "", source: bool = False) -> Path | None:
     """Where a map's reference images are: ``override`` when given (the node's
     ``reference_images_dir``, ``--reference-images``: the folder the map was built from), else
-    the map's own images folder (teach maps keep their pictures), else None. Verification of
-    maps without stored features, ``--save-matches`` and the node's debug view all look here."""
+    the map's own images folder (teach maps keep their pictures), else, with ``source``, the
+    folder a ``build-map --images`` map was built from while it exists (:func:`source_folder`),
+    else None. Verification of maps without stored features, ``--save-matches`` and the node's
+    debug view all look here; ``source`` is for readers that check every picture against the
+    build's index (:class:`SourceImages`: the debug view)."""
     if override:
         return Path(override).expanduser()
     entry = manifest.get("images") or {}
     if map_dir is not None and entry:
         return Path(map_dir) / entry.get("folder", IMAGES_DIR)
+    if source:
+        return source_folder(map_dir, manifest)
     return None
+
+
+def _source_entry(map_dir: str | os.PathLike[str] | None,
+                  manifest: Mapping[str, Any]) -> dict | None:
+    """The manifest's ``source_images`` entry when it is well formed (else one WARN, None)."""
+    entry = manifest.get("source_images")
+    if entry is None:
+        return None
+    ok = (isinstance(entry, dict) and isinstance(entry.get("folder"), str)
+          and Path(entry["folder"]).is_absolute() and isinstance(entry.get("index"), str)
+          and entry["index"] in (manifest.get("files") or {}))
+    if not ok:
+        _warn_once((str(map_dir), "entry"), "%s: manifest field 'source_images' is malformed "
+                   "(expected {folder: absolute path, index: a file listed in 'files'}): the "
+                   "folder the map was built from is not used", map_dir)
+        return None
+    return entry
+
+
+def source_folder(map_dir: str | os.PathLike[str] | None,
+                  manifest: Mapping[str, Any]) -> Path | None:
+    """The folder a ``build-map --images`` map was built from, None when the map records none
+    or when it is gone (one WARN: moved or deleted)."""
+    entry = _source_entry(map_dir, manifest)
+    if entry is None:
+        return None
+    folder = Path(entry["folder"])
+    if not folder.is_dir():
+        _warn_once((str(map_dir), entry["folder"], "gone"),
+                   "%s: the map was built from the images in %s, which is no longer there "
+                   "(moved or deleted): no reference pictures; set reference_images_dir "
+                   "(--reference-images) to where they are now", map_dir, folder)
+        return None
+    return folder
+
+
+def record_source_images(map_dir: str | os.PathLike[str], folder: str | os.PathLike[str],
+                         ids: Sequence[str]) -> dict:
+    """Record in a saved map the folder its pictures ``ids`` were read from (absolute) and
+    ``{id: {"bytes", "sha256"}}`` of each (:data:`SOURCE_INDEX`, listed in ``files``); the
+    manifest is replaced last. Returns the new manifest (used by ``build-map --images``)."""
+    path, folder = Path(map_dir), Path(folder).expanduser().absolute()
+    index = {}
+    for ref_id in ids:
+        p = folder / safe_rel(ref_id)
+        try:
+            index[ref_id] = {"bytes": p.stat().st_size, "sha256": file_sha256(p)}
+        except OSError as exc:  # gone since the build read it: never shown
+            log.warning("%s: reference %s is not recorded (%s)", path, ref_id, exc)
+    manifest = json.loads((path / MANIFEST).read_text(encoding="utf-8"))
+    atomic_write_json(path / SOURCE_INDEX, dict(sorted(index.items())))
+    manifest["files"].update(file_table(path, [SOURCE_INDEX]))
+    manifest["source_images"] = {"folder": str(folder), "index": SOURCE_INDEX,
+                                 "count": len(index), "check": "bytes+sha256"}
+    atomic_write_json(path / MANIFEST, manifest)
+    return manifest
+
+
+class SourceImages:
+    """The reference pictures of a map as bytes, by reference id: from ``folder``, each checked
+    against ``index`` (``{id: {bytes, sha256}}``) when the map has one. A picture that is
+    missing, not listed, or whose bytes differ is None, with one WARN naming it."""
+
+    def __init__(self, folder: str | os.PathLike[str] | None,
+                 index: Mapping[str, Any] | None = None, label: str = "") -> None:
+        self.folder = Path(folder).expanduser() if folder else None
+        self.index, self.label = index, label
+
+    @classmethod
+    def for_map(cls, map_dir: str | os.PathLike[str] | None, manifest: Mapping[str, Any],
+                override: str | os.PathLike[str] = "") -> "SourceImages":
+        """The folder of :func:`images_folder` (``source`` included). A map built from images
+        checks its pictures against the build's index wherever they are read from (its
+        recorded folder or ``override``); a teach map's own folder and old maps are read as
+        they are (the map's files are checked by ``map verify``)."""
+        folder = images_folder(map_dir, manifest, override, source=True)
+        own = not override and bool(manifest.get("images"))
+        entry = None if own else _source_entry(map_dir, manifest)
+        index = None
+        if entry is not None and folder is not None and map_dir is not None:
+            try:
+                p = checked_file(Path(map_dir), manifest, entry["index"], True)
+                index = dict(json.loads(p.read_text(encoding="utf-8")))
+            except (MapError, OSError, ValueError, TypeError) as exc:
+                _warn_once((str(map_dir), "index"), "%s: the index of the pictures the map was "
+                           "built from is unusable (%s): no reference pictures", map_dir, exc)
+                folder = None
+        return cls(folder, index, str(map_dir or ""))
+
+    def read(self, ref_id: str) -> bytes | None:
+        """The picture's bytes, or None (missing, outside the folder, changed since the build)."""
+        if self.folder is None or not ref_id or bad_ref_id(ref_id):
+            return None
+        p = self.folder / ref_id
+        meta = None if self.index is None else self.index.get(ref_id)
+        try:
+            size = p.stat().st_size
+            changed = isinstance(meta, dict) and size != meta.get("bytes")
+            data = b"" if changed or size > MAX_FILE_BYTES else p.read_bytes()
+        except OSError as exc:
+            if self.index is not None:
+                self._warn(p, "missing", f"is missing ({exc.strerror or exc})")
+            else:
+                log.debug("reference image %s not available: %s", ref_id, exc)
+            return None
+        if self.index is None:
+            return data or None
+        if not isinstance(meta, dict):
+            self._warn(p, "unlisted", "is not in the index of the pictures the map was built "
+                       "from")
+            return None
+        if changed or len(data) != meta.get("bytes") or \
+                hashlib.sha256(data).hexdigest() != meta.get("sha256"):
+            self._warn(p, "changed", "changed since the map was built (size or sha256 differ)")
+            return None
+        return data
+
+    def _warn(self, p: Path, kind: str, what: str) -> None:
+        _warn_once((self.label, str(p), kind), "%s: reference picture %s %s: not shown",
+                   self.label, p, what)
 
 
 def image_index(map_dir: Path, manifest: Mapping[str, Any]) -> dict[str, dict]:
@@ -93,6 +238,9 @@ def attach_images(map_dir: str | os.PathLike[str], images_dir: str | os.PathLike
         manifest = json.loads((path / MANIFEST).read_text(encoding="utf-8"))
         ref_ids = ids if ids is not None else ReferenceMap.load(path, verify=False).all_ids()
         tx = Transaction(path, manifest)
+        src = tx.new.pop("source_images", None)  # the build's scratch folder: not kept
+        if isinstance(src, dict):
+            tx.new["files"].pop(src.get("index"), None)
         try:
             store_images(tx, Path(images_dir), list(ref_ids), image_index(path, manifest),
                           int(manifest.get("generation", 0)), move=True)
