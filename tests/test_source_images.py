@@ -165,3 +165,17 @@ def test_malformed_record_warns_and_shows_nothing(built, tmp_path, caplog):
     with caplog.at_level(logging.WARNING):
         assert debug_view.ReferenceImages.for_map(mp, man).load(ids[0]) is None
     assert len(_warnings(caplog)) == 1 and "unusable" in _warnings(caplog)[0]
+
+
+def test_teach_map_keeps_its_pictures_not_the_build_folder(built, tmp_path):
+    """``build-map --bag`` builds from a scratch folder, then moves the pictures into the map:
+    the record of the scratch folder is dropped (the map's own images/ are used)."""
+    from vlm_vpr_ros.maps.map_images import attach_images, verify_images
+
+    pics, mp, man, ids = _copy(built, tmp_path)
+    attach_images(mp, pics)
+    after = json.loads((mp / "manifest.json").read_text())
+    assert "source_images" not in after and SOURCE_INDEX not in after["files"]
+    assert SOURCE_INDEX in after["retired"] and verify_images(mp) == N
+    refs = debug_view.ReferenceImages.for_map(mp, after)
+    assert refs.folder == mp / "images" and refs.load(ids[0]) is not None
