@@ -74,10 +74,12 @@ def test_build_records_the_folder_and_every_picture(built):
     src = man["source_images"]
     assert src["folder"] == str(images.absolute()) and src["count"] == N
     assert src["index"] == SOURCE_INDEX and SOURCE_INDEX in man["files"]  # checked like a file
-    index = json.loads((m / SOURCE_INDEX).read_text())
-    for f in ids:
-        data = (images / f).read_bytes()
-        assert index[f] == {"bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()}
+    index = np.load(m / SOURCE_INDEX, allow_pickle=False)  # rows id, bytes, sha256 by id
+    assert [r.decode() for r in index["id"]] == sorted(ids)
+    for row in index:
+        data = (images / row["id"].decode()).read_bytes()
+        assert row["bytes"] == len(data)
+        assert row["sha256"].tobytes() == hashlib.sha256(data).digest()
     ReferenceMap.load(m, verify=True)  # the map (with its index) passes the full check
     # readers that do not check pictures are not handed the folder (unchanged for them)
     assert images_folder(m, man) is None and images_folder(m, man, source=True) == images
@@ -145,8 +147,12 @@ def test_changed_or_missing_picture_is_skipped_with_one_warning(built, tmp_path,
     assert str(pics / ids[0]) in warned[0] and "changed" in warned[0]
     assert str(pics / ids[2]) in warned[1] and "changed" in warned[1]
     assert str(pics / ids[3]) in warned[2] and "missing" in warned[2]
-    # an id the index does not list (added to the folder later) is not shown either
-    assert SourceImages.for_map(mp, man).read("new.jpg") is None
+    # a picture the index does not list (added to the folder or the map later): not shown
+    shutil.copy(pics / ids[4], pics / "new.jpg")
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        assert SourceImages.for_map(mp, man).read("new.jpg") is None
+    assert len(_warnings(caplog)) == 1 and "not in the index" in _warnings(caplog)[0]
 
 
 def test_malformed_record_warns_and_shows_nothing(built, tmp_path, caplog):
