@@ -25,8 +25,9 @@ if [ -z "$COLCON" ]; then
   "$PY" -m venv "$WORK/colcon-venv"
   "$WORK/colcon-venv/bin/pip" install -q colcon-core==0.21.3 colcon-cmake==0.2.30 \
     colcon-ros==0.5.0 colcon-library-path==0.2.1 colcon-package-selection==0.2.10 \
-    colcon-parallel-executor==0.4.0 colcon-output==0.2.15 \
-    || { echo "pip could not install colcon (no package index?)" >&2; exit 1; }
+    colcon-parallel-executor==0.4.0 colcon-output==0.2.15 > "$WORK/pip.log" 2>&1 \
+    || { tail -5 "$WORK/pip.log" >&2; echo "pip could not install colcon (no package index?)" >&2
+         exit 1; }
   COLCON="$WORK/colcon-venv/bin/colcon"
 fi
 mkdir -p "$WORK/ws/src"
