@@ -22,6 +22,7 @@ from vlm_vpr_ros.mapping.image_sources import ImageSource
 from vlm_vpr_ros.mapping.local_features import (LOO_QUERIES, ReferenceExtractor, calibrate_map,
                                                 store_features)
 from vlm_vpr_ros.maps.features import feature_files, read_features, write_submap_features
+from vlm_vpr_ros.maps.map_images import record_source_images
 from vlm_vpr_ros.maps.format import bad_ref_id
 from vlm_vpr_ros.files.images import check_rgb, load_image
 from vlm_vpr_ros.maps.format import MANIFEST
@@ -221,9 +222,11 @@ def _build_staged(images_dir: Any, rows, desc: GlobalDescriptor, stage: StagedOu
     if stage.path.exists():
         shutil.rmtree(stage.path)  # a half-saved folder of an earlier attempt
     ref_map.save(stage.path)
+    local = images_dir if isinstance(images_dir, Path) else _local_path(str(images_dir))
+    if local is not None and local.is_dir():  # where its pictures are (docs/maps.md)
+        ref_map.manifest = record_source_images(stage.path, local, ids)
     write_map_calibration(ref_map, feats[keep], coords)
     if refx is not None and refx.enabled:
-        local = images_dir if isinstance(images_dir, Path) else _local_path(str(images_dir))
         write_local_features(ref_map, refx, ChunkFeatures(work, rows, refx), progress,
                              images_dir=local)
     stage.commit(validate=lambda p: ReferenceMap.load(p))

@@ -3,8 +3,10 @@
 :func:`render` puts the query beside the chosen reference image (both scaled to one height),
 with a caption (status, sigma, reference, prior, posterior weight) and, when the caller passes
 them, verified matches as lines between the two images. :class:`ReferenceImages` finds the
-reference pictures: the map's own ``images/`` folder (teach maps keep them) or a folder the
-user names (``reference_images_dir``: the folder the map was built from). :func:`candidate_rows`
+reference pictures: the map's own ``images/`` folder (teach maps keep them), the folder a
+``build-map --images`` map records it was built from, or a folder the user names
+(``reference_images_dir``); a map built from images shows a picture only while its bytes are
+those the build read (:class:`~vlm_vpr_ros.maps.map_images.SourceImages`). :func:`candidate_rows`
 lists the best candidates with their posterior weights and inliers, :func:`answer_row` the
 verified answer (status, ``p_correct``, inliers). :func:`winner_matches` takes the inlier matches
 of the verified answer out of the query (worker side, cheap: one row of the map's feature
@@ -25,8 +27,8 @@ import cv2
 import numpy as np
 
 from vlm_vpr_ros.errors import ImageDecodeError, VlmVprError
-from vlm_vpr_ros.files.images import encode_jpeg, load_image
-from vlm_vpr_ros.maps.map_images import images_folder
+from vlm_vpr_ros.files.images import decode_image_bytes, encode_jpeg
+from vlm_vpr_ros.maps.map_images import SourceImages
 
 log = logging.getLogger(__name__)
 PANEL_HEIGHT = 360  # px: both images are scaled to this height
@@ -41,17 +43,20 @@ _FONT = cv2.FONT_HERSHEY_SIMPLEX
 class ReferenceImages:
     """Reference pictures by reference id, scaled to the panel height (a small LRU cache)."""
 
-    def __init__(self, folder: str | Path | None, cache_size: int = 16) -> None:
-        self.folder = Path(folder).expanduser() if folder else None
+    def __init__(self, folder: str | Path | None, cache_size: int = 16,
+                 files: SourceImages | None = None) -> None:
+        self.files = files if files is not None else SourceImages(folder)
+        self.folder = self.files.folder
         self._cache: OrderedDict[str, tuple[np.ndarray, float] | None] = OrderedDict()
         self._size = cache_size
 
     @classmethod
     def for_map(cls, map_path: str | Path | None, manifest: Mapping[str, Any],
                 override: str = "") -> "ReferenceImages":
-        """``override`` when given, else the map's own images folder when it keeps one
-        (:func:`vlm_vpr_ros.maps.map_images.images_folder`, as verification looks)."""
-        return cls(images_folder(map_path, manifest, override))
+        """``override`` when given, else the map's own images folder when it keeps one, else
+        the folder the map was built from while it exists; pictures of a map built from images
+        are checked against the build's index (:meth:`SourceImages.for_map`)."""
+        return cls(None, files=SourceImages.for_map(map_path, manifest, override))
 
     def load(self, ref_id: str) -> tuple[np.ndarray, float] | None:
         """(RGB thumbnail, thumbnail px per original px), or None when unavailable."""
@@ -59,12 +64,11 @@ class ReferenceImages:
             self._cache.move_to_end(ref_id)
             return self._cache[ref_id]
         found = None
-        rel = Path(ref_id)
-        if self.folder is not None and ref_id and not rel.is_absolute() and ".." not in rel.parts:
+        data = self.files.read(ref_id)  # None: missing, outside the folder, changed (WARN)
+        if data is not None:
             try:
-                rgb = load_image(self.folder / rel)
-                found = _scaled(rgb)
-            except (VlmVprError, OSError) as exc:
+                found = _scaled(decode_image_bytes(data, f"reference image {ref_id}"))
+            except VlmVprError as exc:
                 log.debug("reference image %s not available: %s", ref_id, exc)
         self._cache[ref_id] = found
         if len(self._cache) > self._size:
