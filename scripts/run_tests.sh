@@ -10,6 +10,9 @@ workers="${VLM_VPR_TEST_WORKERS:-2}"
 parallel=()
 if [ "$workers" != "0" ] && .venv/bin/python -c "import xdist" 2>/dev/null; then
   parallel=(-n "$workers" --dist loadgroup)
+  # one OpenMP/BLAS thread per worker: two workers' spinning thread teams on two cores spent
+  # 40 % of the CPU in the kernel and ran the suite slower than one process did
+  export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}" OPENBLAS_NUM_THREADS="${OPENBLAS_NUM_THREADS:-1}"
 fi
 .venv/bin/python -m pytest -q -ra "${parallel[@]}" "$@"
 rc=$?

@@ -203,6 +203,8 @@ def test_one_faiss_thread_is_per_thread_and_restored(maps):
     from vlm_vpr_ros.maps.search import one_faiss_thread
 
     m, desc, _ = maps["flat"]
+    outer = faiss.omp_get_max_threads()
+    faiss.omp_set_num_threads(2)  # a team to narrow, even where the suite runs on one thread
     before = faiss.omp_get_max_threads()
     m.search_submaps(list(range(len(m.submaps))), desc[:1], 5)
     assert faiss.omp_get_max_threads() == before
@@ -220,7 +222,8 @@ def test_one_faiss_thread_is_per_thread_and_restored(maps):
     seen["main"] = faiss.omp_get_max_threads()
     release.set()
     t.join(30)
-    assert seen == {"worker": 1, "main": before}
+    faiss.omp_set_num_threads(outer)
+    assert seen == {"worker": 1, "main": before} and before == 2
 
 
 def test_pooled_submap_changed_on_disk_fails_the_query(maps, tmp_path):

@@ -183,7 +183,9 @@ class NodeConfig:
                              writable=True)
     reference_images_dir: str = _p("", "folder of the map's reference images: verification of "
                                        "maps that store no local features, and the debug view "
-                                       "('' = the map's own images/ folder, if it has one)")
+                                       "('' = the map's own images/ folder, if it has one; the "
+                                       "debug view also finds the folder a build-map --images "
+                                       "map records, each picture checked by sha256)")
     diagnostics_period_s: float = _p(1.0, "period of /diagnostics (also sent after each fix)",
                                      0.01, 3600.0)
     hardware_id: str = _p("vlm_vpr", "DiagnosticStatus.hardware_id", writable=True)
