@@ -59,14 +59,15 @@ def test_every_fix_is_right_and_fixes_need_verification(demo_run, doc):
             assert fx["precision25_pct"] == (100.0 if errs else None)
             seen[step, name] = len(errs)
     assert seen[("map", FUSED)] >= 64  # 90 %: the altered copies verify against their source
-    # issue 27: the look-alike map's own leave-one-out found confident answers at the exact
-    # look-alike 5,000 km away, so its protection residual is >= 5,000 km and no answer can be
-    # a fix, trusted prior or not (before the protection level: 16 trusted fixes, all right)
-    assert seen[("lookalike", FUSED)] == 0 and seen[("lookalike", TRUSTED)] == 0
+    # issue 27: leave-one-out leaves out every copy of the held-out photo, so the look-alike
+    # map's protection residual is a place's size, not the 5,000 km to the photo's copy; a
+    # trusted prior then gives fixes again (16 of 71 before the protection level, all right:
+    # within 10 %), never by default
+    assert seen[("lookalike", FUSED)] == 0 and 15 <= seen[("lookalike", TRUSTED)] <= 17
     look_map = out / "lookalike" / "map"
     name = json.loads((look_map / "manifest.json").read_text())["verification_calibration"]
     look = json.loads((look_map / name).read_text())
-    assert look["protection"]["residual_m"] >= 4.9e6
+    assert look["protection"]["residual_m"] < 100.0
     assert doc["summaries"]["bag"]["bag, " + FUSED]["fixes"]["n"] == seen[("map", FUSED)]
     assert "fixes: the share of answers published as STATUS_FIX" in printed
 

@@ -178,6 +178,10 @@ def test_debug_image_for_every_processed_frame(stack, rgb, demo_data):
 
     def processed():
         return int(client.latest_diag().get("frames_processed", -1))
+    for _ in range(3):  # the earlier tests' queries, topped up where a loaded machine shared some
+        if processed() >= 3:
+            break
+        _call_all(client, "relocalize", 1, tick)
     assert client.wait_for(lambda: len(debug) == processed() and debug, 15.0), \
         (len(debug), processed())
     assert len(debug) == processed() >= 3  # one debug image per processed frame

@@ -154,10 +154,13 @@ def test_p_correct_is_the_conformal_bound_of_wrong_answers():
         assert model.p_correct(s) == pytest.approx(expect)
     # a score above every wrong answer: 1 - 1/(n+1), never certainty
     assert model.p_correct(1e9) == pytest.approx(1 - 1 / 200)
-    # held-out wrong answers from the same distribution pass 0.95 at most ~5 % of the time
-    fresh = RNG.gamma(2.0, 1.0, 20_000)
-    rate = np.mean([model.p_correct(s) >= 0.95 for s in fresh])
-    assert rate <= 0.05 + 0.01
+    # held-out wrong answers from the same distribution pass 0.95 at most 5 % of the time, over
+    # calibration sets and fresh answers alike (the conformal guarantee is marginal: one
+    # calibration set alone may pass 6 %); an own generator, whatever ran before in the module
+    rng = np.random.default_rng(27)
+    passed = [np.mean([m.p_correct(s) >= 0.95 for s in rng.gamma(2.0, 1.0, 250)])
+              for m in (PCorrect(np.sort(rng.gamma(2.0, 1.0, 199))) for _ in range(200))]
+    assert abs(float(np.mean(passed)) - 0.05) <= 0.006
     # a near tie (ratio < 2: another place holds half the evidence) is capped at r / (1 + r),
     # whatever the map's wrong answers look like
     low = PCorrect(np.full(100, 0.1))
