@@ -60,8 +60,15 @@ def ensure_map(data: Path, map_dir: Path) -> Path:
     return map_dir
 
 
+#: why an answer is no fix, in the order the gates are checked (docs/node.md)
+HELD = ("no inliers", "noise-level winner", "wrong place",
+        "right place, a verified competitor (p_correct, protection level)")
+NOISE_INLIERS = 12  # the verifier's competitor floor (EvidenceConfig.competitor_floor)
+
+
 def score(results: Path, truth: dict[str, tuple[float, float]]) -> dict[str, object]:
     fixes, off = [], []
+    held: dict[str, list] = {k: [] for k in HELD}
     with results.open(newline="") as fh:
         for row in csv.DictReader(fh):
             la, lo = truth[row["file"]]
@@ -70,7 +77,13 @@ def score(results: Path, truth: dict[str, tuple[float, float]]) -> dict[str, obj
                 fixes.append(round(err))
                 if err > 50.0:
                     off.append(row["file"])
-    return {"fixes": len(fixes), "off_50m": len(off), "errors_m": sorted(fixes)}
+                continue
+            inliers = int(float(row["inliers"] or 0))
+            why = (HELD[0] if inliers == 0 else HELD[1] if inliers <= NOISE_INLIERS else
+                   HELD[2] if err > 50.0 else HELD[3])
+            held[why].append((round(err), float(row["p_correct"] or "nan"),
+                              float(row["protection_m"] or "nan")))
+    return {"fixes": len(fixes), "off_50m": len(off), "errors_m": sorted(fixes), "held": held}
 
 
 def run(data: Path, map_dir: Path, work: Path, honest_m: float = 100.0, lie_m: float = 2000.0,
@@ -118,6 +131,19 @@ def main() -> int:
     for name, r in res.items():
         print(f"  {labels[name]:<40} fixes {r['fixes']:>2}/{n}, more than 50 m off "
               f"{r['off_50m']}, fix errors m {r['errors_m']}")
+    print(f"\nwhy the honest prior's other answers are no fix (inliers <= {NOISE_INLIERS}: "
+          "noise level; wrong: > 50 m off)")
+    print("| answers | why no fix | errors (m) | p_correct | protection level (m) |")
+    print("|---|---|---|---|---|")
+    for why, rows in res["honest"]["held"].items():
+        if not rows:
+            continue
+        errs = sorted(e for e, _, _ in rows)
+        ps = [p for _, p, _ in rows if p == p]
+        pls = [pl for _, _, pl in rows if pl == pl]
+        rng = (lambda v, f: f"{min(v):{f}}-{max(v):{f}}" if v else "-")
+        print(f"| {len(rows)} | {why} | {rng(errs, 'd')} | {rng(ps, '.3f')} | "
+              f"{rng(pls, '.0f')} |")
     return 0
 
 

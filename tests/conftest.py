@@ -22,18 +22,6 @@ def pytest_configure(config) -> None:
     config.addinivalue_line("markers", "fault(id): a fault-catalogue case (tests/faults)")
 
 
-#: test files that share an expensive session fixture run on one pytest-xdist worker
-#: (scripts/run_tests.sh runs ``-n 2 --dist loadgroup``); every other file is its own group,
-#: so module fixtures and the fixed ROS_DOMAIN_IDs of a file stay on one worker
-GROUPS = {"test_real_sf_night.py": "sf_night", "test_real_sf_night_robot_prior.py": "sf_night"}
-
-
-def pytest_collection_modifyitems(items) -> None:
-    for item in items:
-        name = item.path.name
-        item.add_marker(pytest.mark.xdist_group(GROUPS.get(name, str(item.path))))
-
-
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_makereport(item, call):
     outcome = yield
@@ -76,8 +64,8 @@ def shared_dir() -> Path:
 @pytest.fixture(scope="session")
 def sf_night_map(shared_dir, tmp_path_factory) -> tuple[Path, Path]:
     """(``../shared/data/sf_night``, a map of its 332 references: kmeans, 10 clusters, the
-    default verification calibration), built once for the tests that need it (the "sf_night"
-    xdist group); ``VLM_VPR_SF_MAP`` may name such a map to skip the build."""
+    default verification calibration), built once per test process; ``VLM_VPR_SF_MAP`` may
+    name such a map to skip the build."""
     from vlm_vpr_ros.mapping.build_images import build_map
 
     root = shared_dir / "data" / "sf_night"

@@ -368,3 +368,28 @@ def test_sf_night_integrity_at_robot_resolutions(sf):
     # availability: measured 3 at full size and 3 at 640x480 (targets 8 / 7 not met at 0.99;
     # docs/verification.md section 7)
     assert counts["full", "no prior"] >= 2 and counts["fit640x480", "no prior"] >= 2
+
+
+# -- issue 29: the robot's own estimate as a trusted prior (moved here from its own file: one
+# SF map per run, the module's, whatever worker runs it) --------------------------------------
+@pytest.mark.timeout(3000)
+def test_robot_prior_fixes_and_the_guard_against_a_lying_sigma(sf, tmp_path):
+    """Offline through ``vlm-vpr localize --prior recorded`` with a ``sigma_m`` column
+    (benchmarks/robot_prior_sf_night.py): an honest prior (truth moved 100 m, sigma_m 100)
+    gives more fixes than no prior, none more than 50 m off; a prior that lies about its sigma
+    (truth moved 2 km, still claiming 100 m) creates no wrong fix."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    from robot_prior_sf_night import run
+
+    data, map_dir = sf
+    res = run(data, map_dir, tmp_path / "work")
+    print(f"\nSF night robot prior: {res}")
+    none, honest, lying = res["none"], res["honest"], res["lying"]
+    assert none["off_50m"] == honest["off_50m"] == lying["off_50m"] == 0
+    # the target of issue 29 is >= 15; measured 11 under the integrity rule (docs/node.md says
+    # why the rest is held back): the honest prior must add fixes, never wrong ones
+    assert honest["fixes"] >= none["fixes"] + 4
+    assert lying["fixes"] <= none["fixes"]
