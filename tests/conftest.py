@@ -22,6 +22,18 @@ def pytest_configure(config) -> None:
     config.addinivalue_line("markers", "fault(id): a fault-catalogue case (tests/faults)")
 
 
+#: the longest test files (--durations), started first: with two workers (scripts/run_tests.sh,
+#: --dist loadfile) a long file that starts last would run on alone at the end
+LONGEST_FIRST = ("test_real_sf_night.py", "test_demo.py", "test_cpu_paths.py",
+                 "test_ray_build.py", "test_weights_loading.py", "test_verification_learned.py",
+                 "test_teach.py", "test_map_io.py", "test_cli_core.py")
+
+
+def pytest_collection_modifyitems(items) -> None:
+    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: file order kept
+
+
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_makereport(item, call):
     outcome = yield
