@@ -37,7 +37,8 @@ from vlm_vpr_ros.descriptors import create_descriptor  # noqa: E402
 from vlm_vpr_ros.distributed.describe import DescribeOptions, describe_to_shards  # noqa: E402
 from vlm_vpr_ros.distributed.shards import ShardStore, job_fingerprint, read_shards  # noqa: E402
 from vlm_vpr_ros.mapping.image_sources import ImageSource  # noqa: E402
-from vlm_vpr_ros.mapping.build_images import fit_sample_indices, read_coords_csv  # noqa: E402
+from vlm_vpr_ros.mapping.build_images import fit_sample_indices  # noqa: E402
+from vlm_vpr_ros.mapping.coords_csv import read_coords_csv  # noqa: E402
 
 SF = REPO.parent / "shared" / "data" / "sf_night"
 PLANET = 4_100_000

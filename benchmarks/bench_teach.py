@@ -30,7 +30,8 @@ from vlm_vpr_ros.geodesy import haversine_km  # noqa: E402
 from vlm_vpr_ros.files.images import load_image  # noqa: E402
 from vlm_vpr_ros.localization.localizer import Localizer  # noqa: E402
 from vlm_vpr_ros.mapping.assemble import assemble_map
-from vlm_vpr_ros.mapping.build_images import build_map, read_coords_csv  # noqa: E402
+from vlm_vpr_ros.mapping.build_images import build_map  # noqa: E402
+from vlm_vpr_ros.mapping.coords_csv import read_coords_csv  # noqa: E402
 from vlm_vpr_ros.mapping.edit import add_references  # noqa: E402
 from vlm_vpr_ros.localization.pipeline import LocalizationPipeline  # noqa: E402
 from vlm_vpr_ros.priors.provider import Prior, PriorResult  # noqa: E402

@@ -44,7 +44,8 @@ from benchmarks import cpuinfo  # noqa: E402
 from vlm_vpr_ros.files.images import load_image  # noqa: E402
 from vlm_vpr_ros.localization.pipeline import LocalizationPipeline  # noqa: E402
 from vlm_vpr_ros.localization.verification.sift import match_reference  # noqa: E402
-from vlm_vpr_ros.mapping.build_images import build_map, read_coords_csv  # noqa: E402
+from vlm_vpr_ros.mapping.build_images import build_map  # noqa: E402
+from vlm_vpr_ros.mapping.coords_csv import read_coords_csv  # noqa: E402
 
 SHARED = Path(os.environ.get("VLM_VPR_SHARED", REPO.parent / "shared"))
 

@@ -90,7 +90,7 @@ def run(data: Path, map_dir: Path, work: Path, honest_m: float = 100.0, lie_m: f
         sigma_m: float = 100.0) -> dict[str, dict[str, object]]:
     """{setting: score} for the none / honest / lying priors (the CLI on each)."""
     from vlm_vpr_ros.cli import main as cli
-    from vlm_vpr_ros.mapping.build_images import read_coords_csv
+    from vlm_vpr_ros.mapping.coords_csv import read_coords_csv
 
     queries = read_coords_csv(data / "queries.csv")
     truth = {f: (la, lo) for f, la, lo in queries}

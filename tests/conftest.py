@@ -133,7 +133,8 @@ def demo_country_map(tmp_path_factory, demo_data) -> Path:
 def demo_half_map(tmp_path_factory, demo_data) -> tuple[list, Path]:
     """(all coords rows, map of the first 36 demo images): vlad_rootsift_fast at 320 px,
     K=6. Tests that edit it copy it first (map add/remove, map_reload)."""
-    from vlm_vpr_ros.mapping.build_images import build_map, read_coords_csv
+    from vlm_vpr_ros.mapping.build_images import build_map
+    from vlm_vpr_ros.mapping.coords_csv import read_coords_csv
 
     rows = read_coords_csv(demo_data / "coords.csv")
     work = tmp_path_factory.mktemp("demo_half")

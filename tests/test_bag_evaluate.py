@@ -116,7 +116,7 @@ def _custom_bag(path: Path, frames: list[tuple[str, np.ndarray]], gt_offset_ns: 
 
 def test_unsupported_encoding_keeps_other_frames(pipe, demo_data, tmp_path):
     from vlm_vpr_ros.files.images import load_image
-    from vlm_vpr_ros.mapping.build_images import read_coords_csv
+    from vlm_vpr_ros.mapping.coords_csv import read_coords_csv
 
     rows = read_coords_csv(demo_data / "coords.csv")[:4]
     imgs = [load_image(demo_data / "images" / f) for f, _, _ in rows]

@@ -26,7 +26,7 @@ N = 5
 
 @pytest.fixture(scope="module")
 def subset(demo_data, tmp_path_factory) -> tuple[Path, list[tuple[str, float, float]]]:
-    from vlm_vpr_ros.mapping.build_images import read_coords_csv
+    from vlm_vpr_ros.mapping.coords_csv import read_coords_csv
 
     rows = read_coords_csv(demo_data / "coords.csv")[:N]
     csv = tmp_path_factory.mktemp("subset") / "coords.csv"

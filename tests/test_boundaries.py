@@ -199,9 +199,6 @@ LAZY_PROJECT = {
         "imports cv2 at module level (only for a query's SIFT pass)",
     ("vlm_vpr_ros.localization.query_descriptors", "vlm_vpr_ros.files.images"):
         "imports cv2 at module level (only when query images are given)",
-    ("vlm_vpr_ros.mapping.build_descriptors", "vlm_vpr_ros.mapping.build_images"):
-        "the image build imports cv2 and the local features; a build from precomputed "
-        "descriptors needs only its CSV reader",
 }
 
 

@@ -21,7 +21,7 @@ from vlm_vpr_ros.errors import MapError
 from vlm_vpr_ros.files.images import load_image
 from vlm_vpr_ros.localization.localizer import Localizer
 from vlm_vpr_ros.mapping.assemble import assemble_map
-from vlm_vpr_ros.mapping.build_images import read_coords_csv
+from vlm_vpr_ros.mapping.coords_csv import read_coords_csv
 from vlm_vpr_ros.mapping import edit as map_edit
 from vlm_vpr_ros.maps.map_images import verify_images
 from vlm_vpr_ros.maps.reference_map import ReferenceMap

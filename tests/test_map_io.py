@@ -9,7 +9,8 @@ import pytest
 
 from vlm_vpr_ros.mapping import build_images as map_build
 from vlm_vpr_ros.errors import DataError, MapError
-from vlm_vpr_ros.mapping.build_images import build_map, read_coords_csv
+from vlm_vpr_ros.mapping.build_images import build_map
+from vlm_vpr_ros.mapping.coords_csv import read_coords_csv
 from vlm_vpr_ros.maps.reference_map import ReferenceMap
 from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
 

@@ -5,7 +5,7 @@ import pytest
 
 from vlm_vpr_ros.geodesy import haversine_km
 from vlm_vpr_ros.files.images import load_image
-from vlm_vpr_ros.mapping.build_images import read_coords_csv
+from vlm_vpr_ros.mapping.coords_csv import read_coords_csv
 from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
 
 

@@ -23,7 +23,7 @@ from vlm_vpr_ros.cli import main
 from vlm_vpr_ros.errors import BagError, ConfigError
 from vlm_vpr_ros.geodesy import haversine_km
 from vlm_vpr_ros.files.images import load_image
-from vlm_vpr_ros.mapping.build_images import read_coords_csv
+from vlm_vpr_ros.mapping.coords_csv import read_coords_csv
 from vlm_vpr_ros.maps.map_images import verify_images
 from vlm_vpr_ros.maps.reference_map import ReferenceMap
 from vlm_vpr_ros.localization.pipeline import LocalizationPipeline

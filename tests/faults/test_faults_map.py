@@ -165,7 +165,7 @@ def test_coords_conflict(cli, tmp_path, demo_data, two):
 
 @pytest.mark.fault("csv_coords_repeat")
 def test_coords_repeat(tmp_path, demo_data, two, caplog):
-    from vlm_vpr_ros.mapping.build_images import read_coords_csv
+    from vlm_vpr_ros.mapping.coords_csv import read_coords_csv
 
     c = _coords(tmp_path, demo_data, f"{two[0]},10,10\n{two[1]},5,5\n{two[0]},10,10\n")
     assert read_coords_csv(c) == [(two[0], 10.0, 10.0), (two[1], 5.0, 5.0)]
@@ -182,7 +182,7 @@ def test_coords_outside(cli, tmp_path, demo_data, two):
 @pytest.mark.fault("csv_bom")
 def test_bom_accepted(tmp_path, demo_data, two):
     from vlm_vpr_ros.evaluation.metrics import read_ground_truth
-    from vlm_vpr_ros.mapping.build_images import read_coords_csv
+    from vlm_vpr_ros.mapping.coords_csv import read_coords_csv
     from vlm_vpr_ros.priors.simple import read_prior_csv
 
     c = _coords(tmp_path, demo_data, f"{two[0]},10,10\n", prefix="\ufeff")

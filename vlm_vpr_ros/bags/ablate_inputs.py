@@ -37,7 +37,7 @@ def _collect(items: Iterator[tuple[str, np.ndarray, bytes | None, tuple[float, f
 def from_files(pipe: Any, provider: PriorProvider, images_dir: str, queries_csv: str,
                timeout_s: float = 60.0) -> tuple[np.ndarray, np.ndarray, list[PriorResult]]:
     from vlm_vpr_ros.files.images import load_image
-    from vlm_vpr_ros.mapping.build_images import read_coords_csv
+    from vlm_vpr_ros.mapping.coords_csv import read_coords_csv
 
     rows = read_coords_csv(queries_csv)
 

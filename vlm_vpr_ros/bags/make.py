@@ -45,7 +45,7 @@ def make_bag(images_dir: str | os.PathLike[str], coords_csv: str | os.PathLike[s
     ``NavSatFix`` ground truth of the same stamp. With ``compressed`` JPEG/PNG files are stored
     as they are (no re-encoding). Returns paths, topics and counts; ``frames.csv`` beside the
     bag maps stamps back to file names (so recorded priors keyed by file can be used)."""
-    from vlm_vpr_ros.mapping.build_images import read_coords_csv
+    from vlm_vpr_ros.mapping.coords_csv import read_coords_csv
     from vlm_vpr_ros.files.outputs import StagedOutput, check_not_inside
 
     if not (rate_hz > 0 and rate_hz < 1e6):

@@ -70,7 +70,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def cmd_describe(args: argparse.Namespace) -> int:
     from vlm_vpr_ros.distributed.describe import describe_to_shards
-    from vlm_vpr_ros.mapping.build_images import read_coords_csv
+    from vlm_vpr_ros.mapping.coords_csv import read_coords_csv
 
     opts = engine_options(args)
     rows = read_coords_csv(args.coords)

@@ -77,7 +77,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     q.set_defaults(func=cmd_upgrade)
 
 def cmd_map_add(args: argparse.Namespace) -> int:
-    from vlm_vpr_ros.mapping.build_images import read_coords_csv
+    from vlm_vpr_ros.mapping.coords_csv import read_coords_csv
     from vlm_vpr_ros.mapping.edit import add_references
 
     check_source_args(args)

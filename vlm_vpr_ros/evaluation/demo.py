@@ -149,7 +149,7 @@ def make_queries(out_dir: Path, seed: int = 0,
     """Write query images + ``queries.csv`` (file, lat, lon ground truth) of ``places`` (default:
     every shipped image); returns the CSV."""
     from vlm_vpr_ros.files.csvio import write_csv_atomic
-    from vlm_vpr_ros.mapping.build_images import read_coords_csv
+    from vlm_vpr_ros.mapping.coords_csv import read_coords_csv
 
     qdir = out_dir / "queries"
     qdir.mkdir(parents=True, exist_ok=True)
@@ -241,7 +241,8 @@ def run_demo(out: str | Path, with_bag: bool = True, places: int | None = None) 
     from vlm_vpr_ros.localization.localizer import LocalizerConfig
     from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
     from vlm_vpr_ros.localization.verification.stage import Verifier
-    from vlm_vpr_ros.mapping.build_images import build_map, read_coords_csv
+    from vlm_vpr_ros.mapping.build_images import build_map
+    from vlm_vpr_ros.mapping.coords_csv import read_coords_csv
 
     out = Path(out)
     t0, cpu0 = time.monotonic(), time.process_time()

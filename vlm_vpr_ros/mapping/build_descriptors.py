@@ -28,6 +28,7 @@ from vlm_vpr_ros.geodesy import farthest_km
 from vlm_vpr_ros.mapping.assemble import plan_kinds
 from vlm_vpr_ros.maps import indexes
 from vlm_vpr_ros.mapping.balance import split_large
+from vlm_vpr_ros.mapping.coords_csv import read_coords_csv
 from vlm_vpr_ros.maps.format import MANIFEST, MAP_FORMAT, METRIC, content_matches
 from vlm_vpr_ros.maps.partition import make_partition
 from vlm_vpr_ros.maps.reference_map import ReferenceMap, Submap
@@ -258,8 +259,6 @@ def build_from_descriptors(source_path: str | Path, coords_csv: str | Path,
     """Build (or resume) a v2 map from precomputed descriptors; returns the opened map.
     Built in ``.OUT.partial/`` beside ``out_dir`` and swapped in when complete
     (:mod:`vlm_vpr_ros.files.outputs`): an old map stays until then."""
-    from vlm_vpr_ros.mapping.build_images import read_coords_csv
-
     t0 = time.monotonic()
     out_dir = Path(out_dir)
     indexes.check_kind(index)

@@ -13,17 +13,16 @@ from typing import Any, Iterator, Mapping, Sequence
 
 import numpy as np
 
-from vlm_vpr_ros.files.csvio import parse_latlon, read_rows, unique_rows
 from vlm_vpr_ros.descriptors import GlobalDescriptor, create_descriptor
-from vlm_vpr_ros.errors import DataError, ImageDecodeError, MapError
+from vlm_vpr_ros.errors import ImageDecodeError, MapError
 from vlm_vpr_ros.localization.fusion.calibration import calibrate_references, save_calibration
 from vlm_vpr_ros.localization.fusion.error_model import load_error_models
+from vlm_vpr_ros.mapping.coords_csv import read_coords_csv
 from vlm_vpr_ros.mapping.image_sources import ImageSource
 from vlm_vpr_ros.mapping.local_features import (LOO_QUERIES, ReferenceExtractor, calibrate_map,
                                                 store_features)
 from vlm_vpr_ros.maps.features import feature_files, read_features, write_submap_features
 from vlm_vpr_ros.maps.map_images import record_source_images
-from vlm_vpr_ros.maps.format import bad_ref_id
 from vlm_vpr_ros.files.images import check_rgb, load_image
 from vlm_vpr_ros.maps.format import MANIFEST
 from vlm_vpr_ros.mapping.assemble import assemble_map
@@ -35,32 +34,6 @@ from vlm_vpr_ros.types import LocalFeatures
 
 log = logging.getLogger(__name__)
 CHUNK = 128
-
-
-def check_reference_id(ref_id: str, where: str) -> str:
-    """A reference id is a relative path inside the images folder: no absolute paths, no
-    ``..``; anything else is a DataError naming ``where``."""
-    if not ref_id or not ref_id.strip():
-        raise DataError(f"{where}: empty file name")
-    if bad_ref_id(ref_id):
-        raise DataError(f"{where}: file {ref_id!r} points outside the images folder (use a "
-                        "path relative to it, without '..')")
-    return ref_id
-
-
-def read_coords_csv(path: str | os.PathLike[str]) -> list[tuple[str, float, float]]:
-    """Read ``file, lat, lon`` rows; invalid coordinates, file names outside the images folder
-    and conflicting repeated rows are DataErrors naming the line."""
-    _, rows = read_rows(path, "coordinates CSV", ("file", "lat", "lon"))
-    items = []
-    for n, row in rows:
-        where = f"{path}:{n}"
-        items.append((n, check_reference_id(row["file"] or "", where),
-                      parse_latlon(row["lat"], row["lon"], where)))
-    table = unique_rows(items, path, "file")
-    if not table:
-        raise DataError(f"{path}: no rows")
-    return [(f, la, lo) for f, (la, lo) in table.items()]
 
 
 def _progress(iterable, total: int, desc: str, enabled: bool):
