@@ -18,8 +18,10 @@ sampled every 10 s: baseline = mean over the first 2 minutes, end = mean of the 
     .venv/bin/python benchmarks/soak_node.py --duration 600 --out /tmp/soak
 
 Writes OUT/soak.json, OUT/integrity.json and OUT/stanford.png (``--overwrite`` replaces an
-earlier OUT). The protection level of a fix is read from its covariance by
-:func:`protection_from_covariance` (the one place to adapt if the node's relation changes).
+earlier OUT). The protection level of a fix is the node's own (``protection_m`` of the typed
+answer it publishes on ``~/candidates`` with ``publish_debug``), or with ``--pl-source
+covariance`` the bound its NavSatFix covariance implies (:func:`protection_from_covariance`,
+Gaussian: 3.717 σ at 10⁻³, wider than the PL for a fix whose σ is the 25 m place's).
 """
 
 from __future__ import annotations
@@ -111,7 +113,9 @@ def run(args: argparse.Namespace) -> tuple[dict, list]:
     map_dir = args.map or sf_map(args.cache, args.data)
     dom = domain_id()
     params = {"map_dir": str(map_dir), "min_period_s": args.min_period,
-              "diagnostics_period_s": 1.0, "qos": "reliable"}
+              "diagnostics_period_s": 1.0, "qos": "reliable",
+              # the node's own protection level of each answer: on ~/candidates (typed Answer)
+              "publish_debug": args.pl_source == "answer"}
     server = None
     if args.prior == "vlm":
         server = ChatServer("slow", lat=CITY_CENTRE[0], lon=CITY_CENTRE[1],
@@ -126,6 +130,11 @@ def run(args: argparse.Namespace) -> tuple[dict, list]:
     sent: dict[int, int] = {}  # frame stamp -> query index
     try:
         client = GraphClient(dom)
+        answers = []
+        if args.pl_source == "answer":
+            from vlm_vpr_interfaces.msg import Candidates
+
+            answers = client.record(Candidates, "vlm_vpr_node/candidates", 50)
         if not client.wait_subscribed(120.0):
             raise SystemExit("node did not come up:\n" + node.log()[-3000:])
         period = 1.0 / args.hz
@@ -151,22 +160,30 @@ def run(args: argparse.Namespace) -> tuple[dict, list]:
         diag = client.latest_diag()
         with client.lock:
             fixes = list(client.fixes)
+            stated = {stamp_of(m.answer): m.answer.protection_m for m, _ in answers}
     finally:
         if client is not None:
             client.close()
         node.stop()
         if server is not None:
             server.stop()
-    trials, unmatched = [], 0
+    trials, unmatched, wider, no_pl = [], 0, 0, 0
     for msg, arrival in fixes:
         qi = sent.get(stamp_of(msg))
         if qi is None:
             unmatched += 1
             continue
         name, truth, _ = queries[qi]
+        from_cov = protection_from_covariance(msg.position_covariance)
+        pl = stated.get(stamp_of(msg)) if args.pl_source == "answer" else from_cov
+        if pl is None or not math.isfinite(pl):
+            no_pl += args.pl_source == "answer"
+            pl = from_cov
+        is_fix = msg.status.status >= 0
+        wider += bool(is_fix and from_cov is not None and from_cov >= pl)
         trials.append(integrity.Trial(
-            truth, (msg.latitude, msg.longitude), "fix" if msg.status.status >= 0 else "no_fix",
-            protection_from_covariance(msg.position_covariance), arrival / 1e9, name))
+            truth, (msg.latitude, msg.longitude), "fix" if is_fix else "no_fix", pl,
+            arrival / 1e9, name))
     rep = integrity.integrity_report(trials, args.alert_limit_m, t_start=t0_wall,
                                      t_end=t_end_wall, pl_column=True)
     res = {"duration_s": round(t_end_wall - t0_wall, 1), "hz": args.hz, "hold_s": args.hold_s,
@@ -175,6 +192,8 @@ def run(args: argparse.Namespace) -> tuple[dict, list]:
            "frame_size": "fitted inside 640x480", "frames_published": published,
            "frames_processed": int(diag.get("frames_processed", 0) or 0),
            "navsatfix_received": len(fixes), "navsatfix_unmatched": unmatched,
+           "pl_source": args.pl_source, "answers_without_pl": no_pl,
+           "fixes_covariance_bound_at_least_pl": wider,
            "pl_from_covariance": f"sigma * {math.sqrt(-2 * math.log(INTEGRITY_RISK)):.3f} "
                                  f"(integrity risk {INTEGRITY_RISK:g})",
            "integrity": rep, "rss_trace_mib": trace, "rss": rss_summary(trace)}
@@ -189,8 +208,14 @@ def print_result(res: dict) -> None:
              f"{res['prior']}" + (f" ({res['vlm_delay_s']:g} s)" if res["vlm_delay_s"] else "")))
     print(f"frames published / processed: {res['frames_published']} / "
           f"{res['frames_processed']}; NavSatFix received {res['navsatfix_received']} "
-          f"(unmatched {res['navsatfix_unmatched']}); PL from covariance: "
-          f"{res['pl_from_covariance']}")
+          f"(unmatched {res['navsatfix_unmatched']})")
+    if res["pl_source"] == "answer":
+        print(f"protection level: the node's own (protection_m of the typed answer on "
+              f"~/candidates; {res['answers_without_pl']} answers without one: from the "
+              f"covariance); fixes whose covariance bound ({res['pl_from_covariance']}) is at "
+              f"least their PL: {res['fixes_covariance_bound_at_least_pl']}")
+    else:
+        print(f"protection level from the covariance: {res['pl_from_covariance']}")
     ch = rss["change_pct"]
     print(f"node RSS: baseline (first {RSS_BASELINE_S:.0f} s) {rss['baseline_mib']} MiB, end "
           f"{rss['end_mib']} MiB: {'-' if ch is None else f'{ch:+.2f}%'}"
@@ -214,6 +239,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=Path("/tmp/vlm_vpr_soak/out"))
     ap.add_argument("--overwrite", action="store_true")
     ap.add_argument("--json", action="store_true", help="print only the JSON result")
+    ap.add_argument("--pl-source", choices=["answer", "covariance"], default="answer",
+                    help="protection level per fix: the node's own (typed answer on "
+                         "~/candidates, publish_debug on) or read from the NavSatFix "
+                         "covariance (sigma * 3.717)")
     args = ap.parse_args(argv)
     args.alert_limit_m = integrity.check_alert_limit(args.alert_limit_m)
     if not (args.data / "queries.csv").is_file():
