@@ -151,12 +151,23 @@ def demo_run(tmp_path_factory) -> tuple[Path, str]:
     """One run of the shipped demo (``vlm-vpr demo``) shared by the tests that need it:
     (its ``demo_out`` folder, what it printed)."""
     import contextlib
+    import fcntl
     import io
 
     from vlm_vpr_ros.evaluation.demo import run_demo
 
-    out = tmp_path_factory.mktemp("demo_run") / "demo_out"
-    printed = io.StringIO()
-    with contextlib.redirect_stdout(printed):
-        assert run_demo(out) == 0
-    return out, printed.getvalue()
+    # one run for the whole session: pytest-xdist workers share their session's base folder
+    # (the parent of each worker's own); the first worker runs the demo, the others wait for it
+    base = tmp_path_factory.getbasetemp()
+    shared = base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+    folder = shared / "demo_run_shared"
+    folder.mkdir(exist_ok=True)
+    out, text = folder / "demo_out", folder / "printed.txt"
+    with open(shared / "demo_run_shared.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
+        if not text.is_file():
+            printed = io.StringIO()
+            with contextlib.redirect_stdout(printed):
+                assert run_demo(out) == 0
+            text.write_text(printed.getvalue(), encoding="utf-8")
+    return out, text.read_text(encoding="utf-8")

@@ -129,9 +129,11 @@ class MutualNN(Matcher):
                                     self.cfg.mutual, self.threads)
 
 
-#: threads of one match (the calling thread + helpers); 1 = one product on the calling thread
-MATCH_THREADS = min(2, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
-                    else (os.cpu_count() or 1))
+#: threads of one match (the calling thread + helpers); 1 = one product on the calling thread.
+#: One: on a quiet 2-core AMD EPYC the stage took 48.9-51.2 ms with one thread and 55.5-66.4
+#: with the rows split over two (benchmarks/bench_verify.py, two runs); the split paid only on
+#: a machine loaded 16-20 deep, and a node has its intake and executor threads beside it
+MATCH_THREADS = 1
 SPLIT_MIN_CELLS = 250_000  # smaller products: a thread hand-off costs more than it saves
 _pool: tuple[int, ThreadPoolExecutor] | None = None  # (pid, helper): a forked child has none
 _pool_lock = threading.Lock()
