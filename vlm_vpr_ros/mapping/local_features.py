@@ -159,8 +159,9 @@ def calibrate_map(ref_map: Any, max_queries: int = LOO_QUERIES, top_k: int = 20,
         return vectors[si][j:j + 1]
 
     everything = list(range(len(ref_map.submaps)))
-    copies = photo_copies(np.asarray(ref_map.submaps[si].vectors(), np.float32)
-                          for si in everything)
+    copies = photo_copies(vectors.setdefault(si, np.asarray(ref_map.submaps[si].vectors(),
+                                                            np.float32))
+                          for si in everything)  # read once: vec() serves the queries from it
     extra = max((len(c) for c in copies.values()), default=0)
 
     def search(g: int, k: int) -> list[tuple[float, int]]:
@@ -182,8 +183,8 @@ def calibrate_map(ref_map: Any, max_queries: int = LOO_QUERIES, top_k: int = 20,
         return out
 
     conds = [c.name for c in parse_conditions(conditions)]
-    degraded, smallest = _degraded_queries(ref_map, conds, images_dir, descriptor,
-                                           top_k + extra,
+    degraded, smallest = _degraded_queries(ref_map, conds, images_dir, descriptor, top_k,
+                                           extra,
                                            search_vec=lambda v, k: [
                                                (d, int(starts[si] + j)) for d, si, j in
                                                ref_map.search_submaps(everything, v, k)])
@@ -230,11 +231,12 @@ def photo_copies(blocks: Iterable[np.ndarray]) -> dict[int, tuple[int, ...]]:
 
 
 def _degraded_queries(ref_map: Any, conds: Sequence[str], images_dir: str | Path | None,
-                      descriptor: Any, top_k: int, search_vec: Callable
+                      descriptor: Any, top_k: int, extra: int, search_vec: Callable
                       ) -> tuple[Callable | None, list[int]]:
     """(``degraded(row)`` for :func:`~.calibration.loo_records`, a one-element list that the
     calls fill with the smallest frame's longer side); (None, []) when no condition needs
-    images or the images are not reachable."""
+    images or the images are not reachable. Each search returns ``top_k`` + 1 + ``extra``
+    rows (``extra``: the most copies of one photo, left out with it)."""
     others = [parse_condition(c) for c in conds if c != "full"]
     if not others:
         return None, []
@@ -270,7 +272,7 @@ def _degraded_queries(ref_map: Any, conds: Sequence[str], images_dir: str | Path
             else:
                 desc, local = descriptor.describe_one(frame), verifier.query_features(frame)
             vec = np.asarray(desc, np.float32).reshape(1, -1)
-            out[c.name] = (search_vec(vec, top_k + 1), local)
+            out[c.name] = (search_vec(vec, top_k + 1 + extra), local)
         return out
 
     return degraded, smallest
