@@ -228,6 +228,8 @@ def test_map_add_remove_keep_features_row_aligned(demo_half_map, demo_data, tmp_
     rows, src = demo_half_map
     m = copy_map(src, tmp_path / "m")
     before = ReferenceMap.load(m)
+    before_conds = json.loads((m / before.manifest["verification_calibration"]).read_text()
+                              )["conditions"]
     store0 = FeatureStore.open(m, before.manifest)
     keep_id = before.submaps[0].ids[0]
     old = store0.get(before.submaps[0].id, 0)
@@ -249,7 +251,11 @@ def test_map_add_remove_keep_features_row_aligned(demo_half_map, demo_data, tmp_
                                  sec["max_keypoints"])
     assert np.array_equal(store.get(*where[rows[39][0]]).descriptors, new.descriptors)
     doc = json.loads((m / after.manifest["verification_calibration"]).read_text())
-    assert doc["loo"]["queries"] == after.n_references == 36 + 5 - 2  # recalibrated
+    assert doc["per_condition"]["full"]["queries"] == after.n_references == 36 + 5 - 2
+    # recalibrated under the map's conditions, the degraded copies from the pictures the build
+    # recorded: the 4 references added later are not in that record (full size only)
+    assert doc["conditions"] == before_conds and len(before_conds) > 1
+    assert all(doc["per_condition"][c]["queries"] == 39 - 4 for c in before_conds[1:])
 
 
 def test_cli_results_evaluate_and_save_matches(demo_map, demo_data, tmp_path, capsys):

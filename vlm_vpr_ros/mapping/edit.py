@@ -37,7 +37,8 @@ from vlm_vpr_ros.files.csvio import read_file_column
 from vlm_vpr_ros.files.images import load_image
 from vlm_vpr_ros.geodesy import haversine_km, spherical_mean
 from vlm_vpr_ros.mapping.assemble import new_index
-from vlm_vpr_ros.mapping.local_features import calibrate_map, edit_features, map_extractor
+from vlm_vpr_ros.mapping.local_features import (calibrate_map, calibrated_conditions,
+                                                edit_features, map_extractor)
 from vlm_vpr_ros.maps import map_images
 from vlm_vpr_ros.maps.features import FeatureStore
 from vlm_vpr_ros.maps.indexes import effective_kind, make_index, measure_recall
@@ -298,11 +299,13 @@ def add_references(map_dir: str | os.PathLike[str], images_dir: str | os.PathLik
 
 def recalibrate(path: Path, store: Any) -> None:
     """After a committed edit of a map with local features: its leave-one-out calibration of
-    p_correct again (the look-alikes of the map changed; docs/verification.md)."""
+    p_correct again (the look-alikes of the map changed; docs/verification.md), under the
+    query conditions it was calibrated for (the default ones when it records none)."""
     if store is None:
         return
     try:
-        calibrate_map(ReferenceMap.load(path, verify=False))
+        ref_map = ReferenceMap.load(path, verify=False)
+        calibrate_map(ref_map, conditions=calibrated_conditions(ref_map))
     except (ConfigError, DescriptorError) as exc:  # e.g. learned weights not at hand here
         log.warning("%s: p_correct keeps its earlier calibration (%s); recalibrate where the "
                     "matcher's weights are", path, exc)

@@ -22,10 +22,10 @@ import numpy as np
 
 from vlm_vpr_ros.config import from_mapping
 from vlm_vpr_ros.errors import ImageDecodeError, MapError
-from vlm_vpr_ros.files.images import load_image
+from vlm_vpr_ros.files.images import decode_image_bytes
 from vlm_vpr_ros.localization.verification.components import (create_feature, create_matcher,
                                                               one_blas_thread)
-from vlm_vpr_ros.localization.verification.p_correct import loo_calibration, save_doc
+from vlm_vpr_ros.localization.verification.p_correct import load_doc, loo_calibration, save_doc
 from vlm_vpr_ros.localization.verification.conditions import parse_condition, parse_conditions
 from vlm_vpr_ros.localization.verification.evidence import EvidenceConfig
 from vlm_vpr_ros.localization.verification.geometry import GeometryConfig, fundamental_inliers
@@ -33,7 +33,7 @@ from vlm_vpr_ros.localization.verification.presets import (VerifierPreset, get_p
                                                            preset_for_map)
 from vlm_vpr_ros.localization.verification.sift import RootSift
 from vlm_vpr_ros.localization.verification.stage import Verifier
-from vlm_vpr_ros.maps.map_images import images_folder
+from vlm_vpr_ros.maps.map_images import SourceImages
 from vlm_vpr_ros.maps.reference_map import descriptor_for_map
 from vlm_vpr_ros.maps.features import (FeatureStore, attach_features, make_section,
                                        write_submap_features)
@@ -135,8 +135,10 @@ def calibrate_map(ref_map: Any, max_queries: int = LOO_QUERIES, top_k: int = 20,
     written as its ``verification.json``; None when the map stores no features.
     ``conditions`` (default :data:`~.conditions.DEFAULT_CONDITIONS`): the query conditions;
     those other than ``full`` need the reference images (``images_dir``, else the map's own
-    ``images/``) and the map's ``descriptor`` (created when None); without images only ``full``
-    is calibrated (a warning). ``degraded_queries``: references queried under each degraded
+    ``images/``, else the folder a ``build-map --images`` map was built from; a map built from
+    images has every picture checked against the sizes and sha256 its build recorded:
+    :class:`~vlm_vpr_ros.maps.map_images.SourceImages`) and the map's ``descriptor`` (created
+    when None); without images only ``full`` is calibrated (a warning). ``degraded_queries``: references queried under each degraded
     condition (default :data:`DEGRADED_QUERIES`)."""
     store = FeatureStore.open(Path(ref_map.path), ref_map.manifest)
     if store is None:
@@ -230,6 +232,19 @@ def photo_copies(blocks: Iterable[np.ndarray]) -> dict[int, tuple[int, ...]]:
             for rows in groups.values() if len(rows) > 1 for g in rows}
 
 
+def calibrated_conditions(ref_map: Any) -> list[str] | None:
+    """The query conditions the map's ``verification.json`` was calibrated for (None: none
+    recorded, or only a user's results, or a document that does not load: the defaults)."""
+    try:
+        doc = load_doc(ref_map)
+    except MapError as exc:
+        log.warning("%s: the earlier verification calibration is unusable (%s): the default "
+                    "query conditions are calibrated", ref_map.path, exc)
+        return None
+    names = [str(c) for c in (doc or {}).get("conditions") or () if c != "user"]
+    return names or None
+
+
 def _degraded_queries(ref_map: Any, conds: Sequence[str], images_dir: str | Path | None,
                       descriptor: Any, top_k: int, extra: int, search_vec: Callable
                       ) -> tuple[Callable | None, list[int]]:
@@ -240,8 +255,8 @@ def _degraded_queries(ref_map: Any, conds: Sequence[str], images_dir: str | Path
     others = [parse_condition(c) for c in conds if c != "full"]
     if not others:
         return None, []
-    root = images_folder(ref_map.path, ref_map.manifest, str(images_dir or ""))
-    if root is None or not Path(root).is_dir():
+    pictures = SourceImages.for_map(ref_map.path, ref_map.manifest, str(images_dir or ""))
+    if pictures.folder is None or not pictures.folder.is_dir():
         log.warning("%s: no reference images reachable: the verification calibration covers "
                     "full-size queries only (conditions %s need the images: "
                     "--reference-images)", ref_map.path, ",".join(c.name for c in others))
@@ -256,8 +271,12 @@ def _degraded_queries(ref_map: Any, conds: Sequence[str], images_dir: str | Path
     smallest: list[int] = []
 
     def degraded(row: int) -> dict[str, tuple[list[tuple[float, int]], LocalFeatures]]:
+        data = pictures.read(ids[row])  # a map built from images: checked against the
+        # sizes and sha256 the build recorded (a changed picture is skipped, one WARN)
         try:
-            image = load_image(Path(root) / ids[row])
+            if data is None:
+                raise OSError(f"not readable in {pictures.folder}")
+            image = decode_image_bytes(data, ids[row])
         except (OSError, ImageDecodeError) as exc:  # that query is skipped
             log.warning("calibration query %s skipped: %s", ids[row], exc)
             return {}

@@ -1,0 +1,104 @@
+"""The verification calibration of a map built from a folder of images reads its degraded query
+conditions from the pictures the build recorded (folder + size/sha256), checked picture by
+picture: `vlm-vpr calibrate` without `--reference-images` and the recalibration after `map
+remove` keep the map's conditions instead of falling back to full size only."""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import shutil
+
+import pytest
+
+from vlm_vpr_ros.localization.verification.p_correct import load_doc
+from vlm_vpr_ros.mapping.edit import remove_references
+from vlm_vpr_ros.mapping.local_features import calibrate_map, calibrated_conditions
+from vlm_vpr_ros.maps.reference_map import ReferenceMap
+
+N = 8
+CONDS = ["full", "fit480x360"]  # not the default set: an edit must keep exactly these
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory, demo_data):
+    """(pictures folder, map, ids): a SIFT map built with ``build_map`` from eight demo
+    pictures, calibrated for ``CONDS``."""
+    from vlm_vpr_ros.mapping.build_images import build_map
+
+    work = tmp_path_factory.mktemp("calibrate_sources")
+    rows = list(csv.DictReader(open(demo_data / "coords.csv")))[:N]
+    pics = work / "pictures"
+    pics.mkdir()
+    for r in rows:
+        shutil.copy2(demo_data / "images" / r["file"], pics / r["file"])
+    coords = work / "coords.csv"
+    coords.write_text("file,lat,lon\n" + "".join(f"{r['file']},{r['lat']},{r['lon']}\n"
+                                                 for r in rows))
+    build_map(pics, coords, work / "map", descriptor="vlad_rootsift_fast",
+              descriptor_config={"max_side": 320}, clusters=2, progress=False,
+              calibration_conditions=",".join(CONDS))
+    return pics, work / "map", [r["file"] for r in rows]
+
+
+def _copy(built, tmp_path):
+    """A private copy of the pictures and of the map, recording that copy as its source."""
+    pics, m, ids = built
+    p2, m2 = tmp_path / "pictures", tmp_path / "map"
+    shutil.copytree(pics, p2)
+    shutil.copytree(m, m2)
+    man = json.loads((m2 / "manifest.json").read_text())
+    man["source_images"]["folder"] = str(p2)
+    (m2 / "manifest.json").write_text(json.dumps(man))
+    return p2, m2, ids
+
+
+def test_build_calibrates_the_chosen_conditions(built):
+    _, m, _ = built
+    doc = load_doc(ReferenceMap.load(m))
+    assert doc["conditions"] == CONDS
+    assert doc["per_condition"]["fit480x360"]["queries"] == N  # every reference, degraded
+    assert calibrated_conditions(ReferenceMap.load(m)) == CONDS
+
+
+def test_calibrate_reads_the_recorded_pictures(built, tmp_path):
+    """No ``images_dir`` and no ``images/`` in the map: the degraded queries come from the
+    folder the build recorded (before: 'no reference images reachable', full size only)."""
+    _, m, _ = _copy(built, tmp_path)
+    doc = calibrate_map(ReferenceMap.load(m), conditions=CONDS)
+    assert doc["conditions"] == CONDS
+    assert doc["per_condition"]["fit480x360"]["queries"] == N
+
+
+def test_a_changed_picture_is_skipped_by_name(built, tmp_path, caplog):
+    """A picture whose bytes differ from the build's record is no calibration query (one
+    WARN names it); the other pictures still are."""
+    pics, m, ids = _copy(built, tmp_path)
+    changed = pics / ids[3]
+    changed.write_bytes(changed.read_bytes() + b"\0")  # same picture to a decoder, not a match
+    with caplog.at_level(logging.WARNING):
+        doc = calibrate_map(ReferenceMap.load(m), conditions=CONDS)
+    assert doc["per_condition"]["fit480x360"]["queries"] == N - 1
+    assert doc["per_condition"]["full"]["queries"] == N  # the stored features: unaffected
+    said = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert any(str(changed) in s and "changed since the map was built" in s for s in said)
+
+
+def test_pictures_gone_calibrate_full_size_only_with_a_warning(built, tmp_path, caplog):
+    pics, m, _ = _copy(built, tmp_path)
+    shutil.rmtree(pics)
+    with caplog.at_level(logging.WARNING):
+        doc = calibrate_map(ReferenceMap.load(m), conditions=CONDS)
+    assert doc["conditions"] == ["full"]
+    assert any("no reference images reachable" in r.getMessage() for r in caplog.records)
+
+
+def test_an_edit_keeps_the_maps_conditions(built, tmp_path):
+    """``map remove`` recalibrates under the conditions the map was calibrated for, from the
+    recorded pictures (before: the default four, of which only full size was reachable)."""
+    _, m, ids = _copy(built, tmp_path)
+    remove_references(m, [ids[0]])
+    doc = load_doc(ReferenceMap.load(m))
+    assert doc["conditions"] == CONDS
+    assert doc["per_condition"]["fit480x360"]["queries"] == N - 1
