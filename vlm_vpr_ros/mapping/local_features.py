@@ -138,8 +138,8 @@ def calibrate_map(ref_map: Any, max_queries: int = LOO_QUERIES, top_k: int = 20,
     ``images/``, else the folder a ``build-map --images`` map was built from; a map built from
     images has every picture checked against the sizes and sha256 its build recorded:
     :class:`~vlm_vpr_ros.maps.map_images.SourceImages`) and the map's ``descriptor`` (created
-    when None); without images only ``full`` is calibrated (a warning). ``degraded_queries``: references queried under each degraded
-    condition (default :data:`DEGRADED_QUERIES`)."""
+    when None); without images only ``full`` is calibrated (a warning). ``degraded_queries``:
+    references queried under each degraded condition (default :data:`DEGRADED_QUERIES`)."""
     store = FeatureStore.open(Path(ref_map.path), ref_map.manifest)
     if store is None:
         return None
