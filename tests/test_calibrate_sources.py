@@ -5,8 +5,6 @@ remove` keep the map's conditions instead of falling back to full size only."""
 
 from __future__ import annotations
 
-import csv
-import json
 import logging
 import shutil
 
@@ -17,6 +15,8 @@ from vlm_vpr_ros.mapping.edit import remove_references
 from vlm_vpr_ros.mapping.local_features import calibrate_map, calibrated_conditions
 from vlm_vpr_ros.maps.reference_map import ReferenceMap
 
+from source_pictures import build_from_demo, copy_with_pictures
+
 N = 8
 CONDS = ["full", "fit480x360"]  # not the default set: an edit must keep exactly these
 
@@ -25,32 +25,14 @@ CONDS = ["full", "fit480x360"]  # not the default set: an edit must keep exactly
 def built(tmp_path_factory, demo_data):
     """(pictures folder, map, ids): a SIFT map built with ``build_map`` from eight demo
     pictures, calibrated for ``CONDS``."""
-    from vlm_vpr_ros.mapping.build_images import build_map
-
-    work = tmp_path_factory.mktemp("calibrate_sources")
-    rows = list(csv.DictReader(open(demo_data / "coords.csv")))[:N]
-    pics = work / "pictures"
-    pics.mkdir()
-    for r in rows:
-        shutil.copy2(demo_data / "images" / r["file"], pics / r["file"])
-    coords = work / "coords.csv"
-    coords.write_text("file,lat,lon\n" + "".join(f"{r['file']},{r['lat']},{r['lon']}\n"
-                                                 for r in rows))
-    build_map(pics, coords, work / "map", descriptor="vlad_rootsift_fast",
-              descriptor_config={"max_side": 320}, clusters=2, progress=False,
-              calibration_conditions=",".join(CONDS))
-    return pics, work / "map", [r["file"] for r in rows]
+    return build_from_demo(demo_data, tmp_path_factory.mktemp("calibrate_sources"), N,
+                           calibration_conditions=",".join(CONDS))
 
 
 def _copy(built, tmp_path):
     """A private copy of the pictures and of the map, recording that copy as its source."""
     pics, m, ids = built
-    p2, m2 = tmp_path / "pictures", tmp_path / "map"
-    shutil.copytree(pics, p2)
-    shutil.copytree(m, m2)
-    man = json.loads((m2 / "manifest.json").read_text())
-    man["source_images"]["folder"] = str(p2)
-    (m2 / "manifest.json").write_text(json.dumps(man))
+    p2, m2, _ = copy_with_pictures(pics, m, tmp_path)
     return p2, m2, ids
 
 

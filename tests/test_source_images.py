@@ -4,7 +4,6 @@ picture gives one WARN naming it and never another picture in its place."""
 
 from __future__ import annotations
 
-import csv
 import hashlib
 import json
 import logging
@@ -18,6 +17,8 @@ from vlm_vpr_ros.maps.map_images import SOURCE_INDEX, SourceImages, images_folde
 from vlm_vpr_ros.maps.reference_map import ReferenceMap
 from vlm_vpr_ros.runtime import debug_view
 
+from source_pictures import build_from_demo, copy_with_pictures
+
 N = 6
 WARN = "vlm_vpr_ros.maps.map_images"
 
@@ -26,32 +27,14 @@ WARN = "vlm_vpr_ros.maps.map_images"
 def built(tmp_path_factory, demo_data):
     """(images folder, map, ids): a map built with ``build_map`` (``--images``) from a copy of
     six demo pictures in a temporary folder."""
-    from vlm_vpr_ros.mapping.build_images import build_map
-
-    work = tmp_path_factory.mktemp("source_images")
-    rows = list(csv.DictReader(open(demo_data / "coords.csv")))[:N]
-    images = work / "pictures"
-    images.mkdir()
-    for r in rows:
-        shutil.copy2(demo_data / "images" / r["file"], images / r["file"])
-    coords = work / "coords.csv"
-    coords.write_text("file,lat,lon\n" + "".join(f"{r['file']},{r['lat']},{r['lon']}\n"
-                                                 for r in rows))
-    build_map(images, coords, work / "map", descriptor="vlad_rootsift_fast",
-              descriptor_config={"max_side": 320}, clusters=2, progress=False,
-              local_features="none")
-    return images, work / "map", [r["file"] for r in rows]
+    return build_from_demo(demo_data, tmp_path_factory.mktemp("source_images"), N,
+                           local_features="none")
 
 
 def _copy(built, tmp_path):
     """A private copy of the pictures and a map recording that copy as its source."""
     images, m, ids = built
-    pics, mp = tmp_path / "pictures", tmp_path / "map"
-    shutil.copytree(images, pics)
-    shutil.copytree(m, mp)
-    man = json.loads((mp / "manifest.json").read_text())
-    man["source_images"]["folder"] = str(pics)
-    (mp / "manifest.json").write_text(json.dumps(man))
+    pics, mp, man = copy_with_pictures(images, m, tmp_path)
     return pics, mp, man, ids
 
 
