@@ -43,10 +43,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="redo the map's leave-one-out verification calibration under these "
                         "query conditions (comma-separated: full, fit<W>x<H>, jpeg<Q>_<W>x<H>; "
                         "'default': full,fit640x480,fit480x360,jpeg40_640x480); needs the "
-                        "reference images (the map's own or --reference-images); "
-                        "docs/verification.md")
+                        "reference images (the map's own, the folder a build-map --images "
+                        "map recorded, or --reference-images); docs/verification.md")
     p.add_argument("--reference-images", metavar="DIR", default="",
-                   help="the folder the map was built from (for --conditions)")
+                   help="the folder the map was built from (for --conditions; default: the "
+                        "one the build recorded, every picture checked against it)")
     p.add_argument("--degraded-queries", type=int, default=None, metavar="N",
                    help="references queried under each degraded condition (default 60: the "
                         "cost bound; more keeps more fixes at the same threshold)")
