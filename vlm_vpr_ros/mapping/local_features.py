@@ -271,14 +271,17 @@ def _degraded_queries(ref_map: Any, conds: Sequence[str], images_dir: str | Path
     smallest: list[int] = []
 
     def degraded(row: int) -> dict[str, tuple[list[tuple[float, int]], LocalFeatures]]:
-        data = pictures.read(ids[row])  # a map built from images: checked against the
-        # sizes and sha256 the build recorded (a changed picture is skipped, one WARN)
+        # a map built from images: each picture checked against the size and sha256 the
+        # build recorded (a missing or changed one is None, its WARN says why)
+        data = pictures.read(ids[row])
         try:
-            if data is None:
-                raise OSError(f"not readable in {pictures.folder}")
-            image = decode_image_bytes(data, ids[row])
-        except (OSError, ImageDecodeError) as exc:  # that query is skipped
+            image = None if data is None else decode_image_bytes(data, ids[row])
+        except ImageDecodeError as exc:
             log.warning("calibration query %s skipped: %s", ids[row], exc)
+            return {}
+        if image is None:
+            log.warning("calibration query %s skipped: not readable in %s", ids[row],
+                        pictures.folder)
             return {}
         out = {}
         for c in others:
