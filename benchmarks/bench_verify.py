@@ -13,15 +13,20 @@ Map: SF night (../shared/data/sf_night, 332 references, night queries) when pres
 * ``stage: ...``: the stage alone (``verify_ms``: features read, 20-26 matches, MAGSAC).
   Target (issue 18): median <= 400 ms on this 2-core CPU; issue 31: <= 50 ms on a quiet 2-core
   AVX2 machine;
-* ``..., 2 match threads``: the same matcher, its rows split over two threads; ``...,
-  matcher before #31``: the exact numpy matcher it replaced (``sift.match_reference``), in the
-  same run, with the answers of both compared query by query (status, answer, the winner's
-  inliers).
+* ``..., 1 thread``: the same stage with its candidates on the calling thread only (the
+  default shares them between the usable cores, at most 4: ``verification/share.py``);
+  ``..., matcher before #31``: the stage as it was before issue 31 — one thread, the exact
+  numpy matcher it replaced (``sift.match_reference``) — in the same run, with the answers of
+  the default and of it compared query by query (status, answer, the winner's inliers).
 
 Intake: ``QueryRuntime.on_frame`` (what the image callback calls) is timed 2000 times while
 verified queries run in the worker; the target is "never blocks" (max in microseconds).
 
+``--node-malloc``: glibc's malloc as the node sets it (``vlm_vpr_ros/ros/malloc.py``: blocks
+from 256 KiB mmapped, 2 arenas), where every large temporary is a fresh zero-filled mapping.
+
     .venv/bin/python benchmarks/bench_verify.py [--map DIR] [--queries N] [--repeat R]
+        [--node-malloc]
 """
 
 from __future__ import annotations
@@ -80,7 +85,10 @@ def med(xs: list[float]) -> float:
 
 
 class OldMatcher:
-    """The stage's matcher with the matching of before issue 31 (``sift.match_reference``)."""
+    """The stage's matcher with the matching of before issue 31 (``sift.match_reference``), on
+    the calling thread as then."""
+
+    shares_threads = False
 
     def __init__(self, new) -> None:
         self.new = new
@@ -96,7 +104,7 @@ class OldMatcher:
 
 
 #: verified paths: (row name, matcher setting); the first is the default
-VERIFIED = (("verify_top_k 20", None), ("verify_top_k 20, 2 match threads", 2),
+VERIFIED = (("verify_top_k 20", None), ("verify_top_k 20, 1 thread", 1),
             ("verify_top_k 20, matcher before #31", "old"))
 
 
@@ -108,12 +116,11 @@ def timed_paths(map_dir: Path, images: list[np.ndarray], repeat: int) -> tuple[d
     paths = {"retrieval only": lambda im: off.localizer.localize(off.describe(im), None),
              "verify_top_k 0": off.localize_image}
     for name, how in VERIFIED:
-        pipe = LocalizationPipeline.open(map_dir)
+        pipe = LocalizationPipeline.open(map_dir, verification={
+            "threads": 0 if how is None else 1})
         pipe.map.open_submaps()
         if how == "old":
             pipe.verifier.matcher = OldMatcher(pipe.verifier.matcher)
-        elif how is not None:
-            pipe.verifier.matcher.threads = how
         paths[name] = pipe.localize_image
     t: dict[str, list] = {name: [] for name in paths}
     t.update({f"stage: {name}": [] for name, _ in VERIFIED})
@@ -134,7 +141,7 @@ def timed_paths(map_dir: Path, images: list[np.ndarray], repeat: int) -> tuple[d
 
 
 def agreement(answers: dict) -> str:
-    """How the default matcher's answers compare with the matcher before issue 31."""
+    """How the default stage's answers compare with the stage before issue 31."""
     new, old = answers[VERIFIED[0][0]], answers[VERIFIED[-1][0]]
     same_status = sum(a[1] == b[1] for a, b in zip(new, old))
     same_ref = sum(a[2] == b[2] for a, b in zip(new, old))
@@ -178,9 +185,15 @@ def main() -> int:
     ap.add_argument("--queries", type=int, default=34)
     ap.add_argument("--repeat", type=int, default=1)
     ap.add_argument("--intake-s", type=float, default=20.0)
+    ap.add_argument("--node-malloc", action="store_true",
+                    help="glibc malloc as the node sets it (mmap from 256 KiB, 2 arenas)")
     cpuinfo.add_argument(ap)
     cpuinfo.apply_cpu_paths()
     args = ap.parse_args()
+    if args.node_malloc:
+        from vlm_vpr_ros.ros.malloc import tune_malloc
+
+        print(f"# malloc: the node's settings (applied: {tune_malloc()})")
     print(cpuinfo.cpu_line(), flush=True)
     with tempfile.TemporaryDirectory() as tmp:
         map_dir, images, label = data(Path(tmp), args.map)
@@ -197,10 +210,14 @@ def main() -> int:
         stage = med(t[f"stage: {VERIFIED[0][0]}"])
         before = med(t[f"stage: {VERIFIED[-1][0]}"])
         one = med(t[f"stage: {VERIFIED[1][0]}"])
-        print(f"  verification stage, same run: {stage:.1f} ms vs {before:.1f} ms with the "
-              f"matcher before issue 31 ({stage / before:.2f}x; 2 match threads "
+        threads = LocalizationPipeline.open(map_dir).verifier.threads
+        print(f"  verification stage, same run: {stage:.1f} ms ({threads} threads) vs "
+              f"{before:.1f} ms as before issue 31 ({stage / before:.2f}x; 1 thread "
               f"{one / before:.2f}x)")
-        print(f"  answers vs the matcher before issue 31: {agreement(answers)}")
+        print(f"  answers vs the stage before issue 31: {agreement(answers)}")
+        same = sum(a == b for a, b in zip(answers[VERIFIED[0][0]], answers[VERIFIED[1][0]]))
+        print(f"  answers, {threads} threads vs 1 (status, answer, the winner's inliers): "
+              f"identical {same}/{len(answers[VERIFIED[1][0]])}")
         print(f"  targets: verification stage median <= 400 ms (issue 18) and <= 50 ms on a "
               f"quiet 2-core AVX2 machine (issue 31): measured {stage:.0f} ms at load "
               f"{os.getloadavg()[0]:.1f}; verify_top_k 0 / retrieval only ~1.0 (measured "

@@ -175,16 +175,19 @@ def test_pooled_small_submaps_give_each_submaps_own_distances(kind, monkeypatch)
                                                              False, True]
 
 
-def test_rerank_distances_are_exact_float32_distances_to_the_fp16_vectors():
-    """The pq re-rank (FAISS's fp16 decoder, on one OpenMP thread in a query) gives the exact
-    float32 distances to the fp16 vectors, bit for bit, for odd and even dims."""
+def test_rerank_distances_are_exact_float32_distances_to_the_fp16_vectors(monkeypatch):
+    """The pq re-rank (OpenCV, or FAISS's fp16 decoder on one OpenMP thread in a query) gives
+    the exact float32 distances to the fp16 vectors, bit for bit, for odd and even dims, in one
+    block of rows or several."""
+    from vlm_vpr_ros.maps import indexes
     from vlm_vpr_ros.maps.indexes import exact_sq_l2
     from vlm_vpr_ros.maps.search import one_faiss_thread
 
     rng = np.random.default_rng(7)
-    for dim in (24, 33, 512):
-        half = (rng.normal(size=(300, dim)) * rng.uniform(0.01, 100)).astype(np.float16)
-        rows = np.sort(rng.choice(300, 120, replace=False))
+    for dim, n, k in ((24, 300, 120), (33, 300, 120), (512, 300, 120), (512, 3000, 1001),
+                      (96, 3000, 2000)):  # the last two: several blocks, a partial last one
+        half = (rng.normal(size=(n, dim)) * rng.uniform(0.01, 100)).astype(np.float16)
+        rows = np.sort(rng.choice(n, k, replace=False))
         q = rng.normal(size=(1, dim)).astype(np.float32)
         want = half[rows].astype(np.float32) - q  # fp16 -> float32 is exact
         want = np.einsum("ij,ij->i", want, want)
@@ -192,6 +195,10 @@ def test_rerank_distances_are_exact_float32_distances_to_the_fp16_vectors():
             got = exact_sq_l2(half, rows, q)
         assert got.dtype == np.float32 and np.array_equal(got, want)
         assert np.array_equal(exact_sq_l2(half, rows, q), want)
+        with monkeypatch.context() as m:
+            m.setattr(indexes, "_cv2", lambda: None)  # FAISS's decoder
+            assert np.array_equal(exact_sq_l2(half, rows, q), want)
+    assert exact_sq_l2(half, rows[:0], q).shape == (0,)
 
 
 def test_one_faiss_thread_is_per_thread_and_restored(maps):

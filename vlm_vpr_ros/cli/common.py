@@ -79,6 +79,9 @@ def add_verification_args(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--verify-top-k", type=int, default=20, metavar="K",
                    help="candidates verified with local features + geometry (default 20; 0: "
                         "off, every answer unverified and no_fix)")
+    g.add_argument("--verify-threads", type=int, default=0, metavar="N",
+                   help="threads sharing a query's candidates (default 0: the usable cores, at "
+                        "most 4; the answers do not depend on it)")
     g.add_argument("--reference-images", metavar="DIR", default="",
                    help="reference images, for maps that store no local features (maps built "
                         "from descriptors): verified from these images")
@@ -106,7 +109,7 @@ def add_verification_args(parser: argparse.ArgumentParser) -> None:
 
 def verification_config(args: argparse.Namespace) -> VerificationConfig:
     return VerificationConfig(args.verify_top_k, args.verification_required,
-                              args.reference_images,
+                              args.reference_images, threads=args.verify_threads,
                               feature_options=parse_kv(args.feature_option),
                               matcher_options=parse_kv(args.matcher_option))
 

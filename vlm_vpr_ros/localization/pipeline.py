@@ -21,6 +21,7 @@ from vlm_vpr_ros.localization.verification import prior_trust
 from vlm_vpr_ros.localization.verification.status import StatusPolicy, stamp_status
 from vlm_vpr_ros.maps.reference_map import ReferenceMap, descriptor_for_map
 from vlm_vpr_ros.priors.provider import PriorResult
+from vlm_vpr_ros.threads import one_blas_thread
 from vlm_vpr_ros.types import Hypothesis, LocalFeatures
 
 log = logging.getLogger(__name__)
@@ -145,7 +146,12 @@ class LocalizationPipeline:
         return self.descriptor.describe_one(image)
 
     def describe_query(self, image: np.ndarray) -> QueryDescription:
-        """Global descriptor and (when verifying) local features of one query image."""
+        """Global descriptor and (when verifying) local features of one query image; BLAS on
+        this thread (:mod:`vlm_vpr_ros.threads`)."""
+        with one_blas_thread():
+            return self._describe_query(image)
+
+    def _describe_query(self, image: np.ndarray) -> QueryDescription:
         t0 = time.perf_counter()
         v = self.verifier
         if v is not None and v.reuses_sift_of(self.descriptor):
@@ -167,8 +173,9 @@ class LocalizationPipeline:
                             local: LocalFeatures | None = None) -> Hypothesis:
         """Retrieval + fusion, then verification with the query's ``local`` features (without
         them the answer is flagged ``unverified``), then the status."""
-        hyp = self.localizer.localize(desc, prior_result)
-        return self.finish(hyp, local)
+        with one_blas_thread():
+            hyp = self.localizer.localize(desc, prior_result)
+            return self.finish(hyp, local)
 
     def finish(self, hyp: Hypothesis, local: LocalFeatures | None) -> Hypothesis:
         """Verification (when configured) and the status of a localized hypothesis."""

@@ -23,8 +23,7 @@ import numpy as np
 from vlm_vpr_ros.config import from_mapping
 from vlm_vpr_ros.errors import ImageDecodeError, MapError
 from vlm_vpr_ros.files.images import decode_image_bytes
-from vlm_vpr_ros.localization.verification.components import (create_feature, create_matcher,
-                                                              one_blas_thread)
+from vlm_vpr_ros.localization.verification.components import create_feature, create_matcher
 from vlm_vpr_ros.localization.verification.p_correct import load_doc, loo_calibration, save_doc
 from vlm_vpr_ros.localization.verification.conditions import parse_condition, parse_conditions
 from vlm_vpr_ros.localization.verification.evidence import EvidenceConfig
@@ -37,6 +36,7 @@ from vlm_vpr_ros.maps.map_images import SourceImages
 from vlm_vpr_ros.maps.reference_map import descriptor_for_map
 from vlm_vpr_ros.maps.features import (FeatureStore, attach_features, make_section,
                                        write_submap_features)
+from vlm_vpr_ros.threads import one_blas_thread
 from vlm_vpr_ros.types import LocalFeatures
 
 log = logging.getLogger(__name__)

@@ -155,6 +155,11 @@ def pq_candidates(index: Any, q: np.ndarray, kk: int) -> tuple[np.ndarray, np.nd
     return dist[0][keep], idx[0][keep]
 
 
+#: bytes of float32 rows the re-rank handles at once (module constant, below glibc's mmap
+#: threshold and the node's 256 KiB one: block buffers come from the heap and stay in cache)
+RERANK_BLOCK_BYTES = 128 * 1024
+
+
 def exact_sq_l2(rerank: np.ndarray, rows: np.ndarray, q: np.ndarray) -> np.ndarray:
     """Stage 2: exact squared L2 of ``q`` to the fp16 re-rank vectors of ``rows`` (ascending
     rows read the memory-mapped file in order): ``float32(v) - q`` then the sum of squares,
@@ -162,19 +167,34 @@ def exact_sq_l2(rerank: np.ndarray, rows: np.ndarray, q: np.ndarray) -> np.ndarr
     thread; exact: every fp16 value is a float32). FAISS's fp16 decoder converts one value at
     a time (issue 31: ``benchmarks/bench_scale.py`` compares both) and numpy's cast is slower
     still; without OpenCV the decoder is used, on the calling thread's OpenMP setting
-    (:func:`vlm_vpr_ros.maps.search.one_faiss_thread`)."""
-    half = np.ascontiguousarray(rerank[rows])
-    if not len(half):
-        return np.zeros(0, np.float32)
+    (:func:`vlm_vpr_ros.maps.search.one_faiss_thread`).
+
+    Rows are taken in blocks of :data:`RERANK_BLOCK_BYTES` (64 rows at 512-D) into buffers
+    made once per call: 800 rows at once needed three 0.8-1.6 MB temporaries, which glibc maps
+    fresh and the kernel zero-fills at every query (issue 31, 2-core AVX2 EPYC, 800 × 512-D:
+    4.6 ms at once, 0.4-0.8 ms in blocks, the same floats; tests/test_fusion_search.py)."""
+    rows = np.asarray(rows)
+    out = np.empty(len(rows), np.float32)
+    if not len(rows):
+        return out
+    dim = int(rerank.shape[1])
+    block = max(8, RERANK_BLOCK_BYTES // (4 * dim))
+    qf = np.asarray(q, np.float32).reshape(1, -1)
     cv2 = _cv2()
     if cv2 is not None:
         # q repeated per row: OpenCV copies a broadcast (stride 0) operand element by element
-        tiled = np.repeat(np.asarray(q, np.float32).reshape(1, -1), len(half), axis=0)
-        vecs = cv2.subtract(half, tiled, dtype=cv2.CV_32F)
-    else:
-        vecs = _fp16_codec(half.shape[1]).decode(half.view(np.uint8))
-        vecs -= q
-    return np.einsum("ij,ij->i", vecs, vecs)
+        tiled = np.repeat(qf, min(block, len(rows)), axis=0)
+        vecs = np.empty_like(tiled)
+    for s in range(0, len(rows), block):
+        half = rerank[rows[s:s + block]]
+        n = len(half)
+        if cv2 is not None:
+            v = cv2.subtract(half, tiled[:n], dst=vecs[:n], dtype=cv2.CV_32F)
+        else:
+            v = _fp16_codec(dim).decode(np.ascontiguousarray(half).view(np.uint8))
+            v -= qf
+        np.einsum("ij,ij->i", v, v, out=out[s:s + n])
+    return out
 
 
 @functools.lru_cache(maxsize=1)

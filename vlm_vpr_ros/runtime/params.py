@@ -126,6 +126,9 @@ class NodeConfig:
     verify_top_k: int = _p(20, "candidates verified with local features + geometry per query "
                                "(0 = off: every answer unverified, STATUS_NO_FIX)", 0, 1000,
                            writable=True)
+    verify_threads: int = _p(0, "threads sharing a query's verification candidates (0 = the "
+                                "usable cores, at most 4; the answers do not depend on it)",
+                             0, 64)
     verification_required: bool = _p(False, "a map without usable local features (and no "
                                             "reference_images_dir) fails configure; false: "
                                             "a warning and unverified answers")
@@ -202,6 +205,7 @@ class NodeConfig:
     def verification_config(self) -> VerificationConfig:
         return VerificationConfig(self.verify_top_k, self.verification_required,
                                   os.path.expanduser(self.reference_images_dir),
+                                  threads=self.verify_threads,
                                   feature_options=_expanded(self.feature_options),
                                   matcher_options=_expanded(self.matcher_options))
 

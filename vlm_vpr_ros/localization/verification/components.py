@@ -50,6 +50,9 @@ class Matcher(abc.ABC):
     """Tentative correspondences between a query and reference images."""
 
     name: str = ""
+    #: whether threads may match one query's candidates concurrently (numpy/BLAS on one
+    #: thread each; verification/share.py); a model with its own threads or device says no
+    shares_threads: bool = False
 
     def __init__(self, config: Mapping[str, Any] | None = None) -> None:
         self.config: dict[str, Any] = dict(config or {})
@@ -118,12 +121,3 @@ def create_feature(name: str, config: Mapping[str, Any] | None = None) -> LocalF
 def create_matcher(name: str, config: Mapping[str, Any] | None = None) -> Matcher:
     c: Component = choose(name, available_matchers(), "matcher")
     return c.factory({**c.defaults, **dict(config or {})})
-
-
-def one_blas_thread():
-    """Context manager: BLAS on one thread. The products of matching are small (1000 x 1000 x
-    128): on a loaded 2-core machine OpenBLAS' thread team made them 10-40x slower
-    (measured 43 ms vs 1 ms), so verification runs them on the calling thread."""
-    from threadpoolctl import threadpool_limits
-
-    return threadpool_limits(limits=1, user_api="blas")

@@ -12,15 +12,17 @@ BFMatcher would search twice. The product (SIMD float32 GEMM) is most of the cos
 (:func:`mutual_ratio_matches`, issue 31):
 
 * the mutual check needs each reference's best query only for the pairs that passed the ratio
-  test: the column maxima come from one contiguous reduction and one comparison pass counts
-  the rows reaching each maximum; only a column reached by several rows (a tie) is searched
-  for its first row (numpy's argmax rule), instead of ``argmax(axis=0)`` over the whole
-  matrix (a transposed copy: 1.7 of ~7 ms per candidate here);
-* on a machine with two or more usable cores, the query's rows are split in two halves, one
-  computed on a helper thread (a plain thread, no spinning team: on a busy machine it waits
-  for a core like any task). The halves' products are the same dot products, but a BLAS may
-  round a block of rows differently in the last bit (measured on SF night: docs/verification.md);
-  ``MATCH_THREADS = 1`` gives the single-product matcher.
+  test: ``argmax`` over those columns only (gathered once; typically 5-15 % of them), instead
+  of ``argmax(axis=0)`` over the whole matrix (a transposed pass: 1.7 of ~7 ms per candidate
+  on the machine of issue 31);
+* the similarity matrix (~2 MB) and the reference's RootSIFT are written into buffers kept per
+  thread (:func:`scratch`): allocated per candidate, glibc maps such blocks fresh and the kernel
+  zero-fills them every time — under the node's malloc settings (``ros/malloc.py``: blocks from
+  256 KiB mmapped) that doubled the stage (issue 31: 122-136 against 56-70 ms, SF night, one
+  thread);
+* the candidates of one query are shared between threads by the stage
+  (:mod:`.share`), each product whole on one thread: an earlier split of one product's rows
+  over two threads lost time on a quiet machine (a hand-off per product) and was removed.
 
 :func:`match_reference` is the matcher before issue 31 (exact numpy), kept for the comparisons
 of ``benchmarks/bench_verify.py`` and the tests.
@@ -28,9 +30,7 @@ of ``benchmarks/bench_verify.py`` and the tests.
 
 from __future__ import annotations
 
-import os
 import threading
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
 from typing import Any, Mapping
 
@@ -83,11 +83,34 @@ class RootSift(LocalFeatureExtractor):
         return LocalFeatures(xy, des8, (int(size[0]), int(size[1])), float(scale))
 
 
-def rootsift(des: np.ndarray) -> np.ndarray:
-    """RootSIFT (float32, unit L2 norm) of SIFT descriptors (any numeric dtype)."""
-    d = np.asarray(des, dtype=np.float32)
-    d = d / (d.sum(axis=1, keepdims=True) + 1e-7)
-    return np.sqrt(d)
+_scratch = threading.local()
+
+
+def scratch(name: str, shape: tuple[int, ...]) -> np.ndarray:
+    """A float32 array of ``shape`` in a buffer of this thread kept between calls (grown when
+    too small); its content is whatever the last user left. Only for temporaries that no
+    result refers to."""
+    size = int(np.prod(shape))
+    bufs = getattr(_scratch, "bufs", None)
+    if bufs is None:
+        bufs = _scratch.bufs = {}
+    buf = bufs.get(name)
+    if buf is None or buf.size < size:
+        buf = bufs[name] = np.empty(max(size, int(1.25 * (0 if buf is None else buf.size))),
+                                    np.float32)
+    return buf[:size].reshape(shape)
+
+
+def rootsift(des: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """RootSIFT (float32, unit L2 norm) of SIFT descriptors (any numeric dtype), into ``out``
+    (float32, the same shape) when given."""
+    if out is None:
+        d = np.asarray(des, dtype=np.float32)
+        d = d / (d.sum(axis=1, keepdims=True) + 1e-7)
+        return np.sqrt(d)
+    np.copyto(out, des, casting="unsafe")
+    np.divide(out, out.sum(axis=1, keepdims=True) + 1e-7, out=out)
+    return np.sqrt(out, out=out)
 
 
 @dataclass(frozen=True)
@@ -104,17 +127,19 @@ class NNConfig:
 class MutualNN(Matcher):
     """Nearest neighbours of unit-norm descriptors (RootSIFT or learned), mutual + ratio."""
 
+    shares_threads = True  # numpy + BLAS on one thread per product
+
     def __init__(self, config: Mapping[str, Any] | None = None) -> None:
         self.cfg = from_mapping(NNConfig, config, "nn matcher")
         super().__init__(asdict(self.cfg))
         self.name = "nn"
-        #: threads of one match (None: MATCH_THREADS); not part of the config (same answers)
-        self.threads: int | None = None
 
     @staticmethod
-    def _unit(f: LocalFeatures) -> np.ndarray:
+    def _unit(f: LocalFeatures, temporary: bool = False) -> np.ndarray:
+        """Unit descriptors; ``temporary``: in this thread's scratch buffer (SIFT)."""
         if f.descriptors.dtype == np.uint8:  # SIFT
-            return rootsift(f.descriptors)
+            return rootsift(f.descriptors, scratch("ref", f.descriptors.shape)
+                            if temporary else None)
         d = np.asarray(f.descriptors, dtype=np.float32)
         return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
 
@@ -125,79 +150,34 @@ class MutualNN(Matcher):
         q = prepared
         if len(q) < 2 or len(ref) < 2:
             return np.zeros((0, 2), np.int64)
-        return mutual_ratio_matches(q, self._unit(ref), self.cfg.ratio, self.cfg.distance_max,
-                                    self.cfg.mutual, self.threads)
+        return mutual_ratio_matches(q, self._unit(ref, temporary=True), self.cfg.ratio,
+                                    self.cfg.distance_max, self.cfg.mutual)
 
 
-#: threads of one match (the calling thread + helpers); 1 = one product on the calling thread.
-#: One: on a quiet 2-core AMD EPYC the stage took 48.9-51.2 ms with one thread and 55.5-66.4
-#: with the rows split over two (benchmarks/bench_verify.py, two runs); the split paid only on
-#: a machine loaded 16-20 deep, and a node has its intake and executor threads beside it
-MATCH_THREADS = 1
-SPLIT_MIN_CELLS = 250_000  # smaller products: a thread hand-off costs more than it saves
-_pool: tuple[int, ThreadPoolExecutor] | None = None  # (pid, helper): a forked child has none
-_pool_lock = threading.Lock()
-
-
-def _helper() -> ThreadPoolExecutor:
-    global _pool
-    with _pool_lock:
-        if _pool is None or _pool[0] != os.getpid():  # a fork copies the object, not the thread
-            _pool = (os.getpid(), ThreadPoolExecutor(max_workers=1,
-                                                     thread_name_prefix="nn-match"))
-        return _pool[1]
-
-
-def _rows_part(q: np.ndarray, rt: np.ndarray, sim: np.ndarray) -> tuple[np.ndarray, ...]:
-    """Fill ``sim`` = q @ rt; (best column, best and second best similarity, column maxima)."""
-    np.matmul(q, rt, out=sim)
+def mutual_ratio_matches(q: np.ndarray, r: np.ndarray, ratio: float, distance_max: float,
+                         mutual: bool = True) -> np.ndarray:
+    """(query row, reference row) pairs of unit descriptors ``q`` (n, d) and ``r`` (m, d), both
+    float32: the query's nearest reference passes Lowe's ratio (distance to the nearest <=
+    ``ratio`` · to the second) and ``distance_max``, and, with ``mutual``, the reference's
+    nearest query is that query (the first one on ties, as ``argmax``). Same pairs as
+    :func:`match_reference` (the same product: the same floats)."""
+    sim = np.matmul(q, r.T, out=scratch("sim", (len(q), len(r))))  # (n, m) cosine
+    # similarities (BLAS reads r transposed in place), in this thread's buffer
     rows = np.arange(len(sim))
     best = sim.argmax(axis=1)
     s1 = sim[rows, best]
     sim[rows, best] = -np.inf  # second best by masking the best (cheaper than a partition)
     s2 = sim.max(axis=1)
     sim[rows, best] = s1
-    return best, s1, s2, sim.max(axis=0)
-
-
-def mutual_ratio_matches(q: np.ndarray, r: np.ndarray, ratio: float, distance_max: float,
-                         mutual: bool = True, threads: int | None = None) -> np.ndarray:
-    """(query row, reference row) pairs of unit descriptors ``q`` (n, d) and ``r`` (m, d), both
-    float32: the query's nearest reference passes Lowe's ratio (distance to the nearest <=
-    ``ratio`` · to the second) and ``distance_max``, and, with ``mutual``, the reference's
-    nearest query is that query (the first one on ties, as ``argmax``). Same pairs as
-    :func:`match_reference` (up to the last bit of a split product; module docstring)."""
-    n = len(q)
-    rt = np.ascontiguousarray(r.T)
-    sim = np.empty((n, len(r)), np.float32)
-    threads = MATCH_THREADS if threads is None else int(threads)
-    if threads > 1 and n * len(r) >= SPLIT_MIN_CELLS and n >= 64:
-        h = n // 2
-        other = _helper().submit(_rows_part, q[h:], rt, sim[h:])
-        a = _rows_part(q[:h], rt, sim[:h])
-        b = other.result()
-        best, s1, s2 = (np.concatenate([x, y]) for x, y in zip(a[:3], b[:3]))
-        colmax = np.maximum(a[3], b[3])
-    else:
-        best, s1, s2, colmax = _rows_part(q, rt, sim)
     d1 = np.sqrt(np.maximum(2.0 - 2.0 * s1, 0.0))
     d2 = np.sqrt(np.maximum(2.0 - 2.0 * s2, 0.0))
     keep = np.flatnonzero((d1 <= ratio * d2) & (d1 <= distance_max))
     if mutual and len(keep):
+        # the query must be its column's first best row (argmax's rule on ties): only the
+        # columns of the pairs that passed the ratio test are read, not the whole matrix
         col = best[keep]
-        keep = keep[s1[keep] == colmax[col]]  # the query reaches its column's maximum ...
-        col = best[keep]
-        if len(keep):  # ... and is the first row that does (argmax's rule on ties): rows
-            # reaching each column's maximum counted in one pass, columns with a tie looked up
-            reach = (sim == colmax).view(np.uint8).sum(
-                axis=0, dtype=np.uint16 if n < 2 ** 16 else np.uint32)
-            tied = reach[col] > 1
-            if tied.any():
-                c = col[tied]
-                first = (np.take(sim, c, axis=1) == colmax[c]).argmax(axis=0)
-                ok = np.ones(len(keep), dtype=bool)
-                ok[tied] = first == keep[tied]
-                keep = keep[ok]
+        cols = np.take(sim, col, axis=1, out=scratch("cols", (len(sim), len(col))))
+        keep = keep[cols.argmax(axis=0) == keep]
     return np.stack([keep, best[keep]], axis=1).astype(np.int64)
 
 

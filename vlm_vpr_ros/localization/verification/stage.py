@@ -25,8 +25,7 @@ import numpy as np
 from vlm_vpr_ros.errors import ConfigError, DescriptorError, ImageDecodeError, MapError
 from vlm_vpr_ros.geodesy import haversine_km
 from vlm_vpr_ros.localization.verification.components import (LocalFeatureExtractor, Matcher,
-                                                              create_feature, create_matcher,
-                                                              one_blas_thread)
+                                                              create_feature, create_matcher)
 from vlm_vpr_ros.localization.verification.conditions import ConditionWatch
 from vlm_vpr_ros.localization.verification.status import horizontal_sigma, k_risk
 from vlm_vpr_ros.localization.verification.p_correct import (PCorrect, load_doc,
@@ -34,9 +33,11 @@ from vlm_vpr_ros.localization.verification.p_correct import (PCorrect, load_doc,
 from vlm_vpr_ros.localization.verification.evidence import EvidenceConfig, spread_radii, weigh
 from vlm_vpr_ros.localization.verification.geometry import GeometryConfig, fundamental_inliers
 from vlm_vpr_ros.localization.verification.presets import preset_for_map
+from vlm_vpr_ros.localization.verification.share import map_shared, resolve_threads
 from vlm_vpr_ros.maps.features import FeatureStore
 from vlm_vpr_ros.config import from_mapping
 from vlm_vpr_ros.maps.map_images import images_folder
+from vlm_vpr_ros.threads import one_blas_thread
 from vlm_vpr_ros.types import Hypothesis, LocalFeatures
 
 log = logging.getLogger(__name__)
@@ -48,6 +49,9 @@ class VerificationConfig:
     required: bool = False  # a missing / damaged feature store is an error at open
     images_dir: str = ""  # reference images for maps without stored features
     cache_size: int = 256  # reference features extracted from images, kept in memory
+    #: threads sharing a query's candidates (0 = auto: the usable cores, at most 4); the
+    #: answers do not depend on it (verification/share.py)
+    threads: int = 0
     #: local-feature / matcher settings that are not part of the map (learned weights' paths,
     #: device), e.g. {"weights": "/data/disk/depth-save.pth"}
     feature_options: Mapping[str, Any] = field(default_factory=dict)
@@ -56,6 +60,8 @@ class VerificationConfig:
     def __post_init__(self) -> None:
         if not (0 <= self.top_k <= 1000 and self.cache_size >= 0):
             raise ConfigError(f"verify_top_k must be in 0..1000, got {self.top_k}")
+        if not 0 <= self.threads <= 64:
+            raise ConfigError(f"verify_threads must be in 0..64 (0 = auto), got {self.threads}")
 
 
 def _same_feature(a: dict, b: dict) -> list[str]:
@@ -71,6 +77,7 @@ class Verifier:
         if not isinstance(config, VerificationConfig):
             config = from_mapping(VerificationConfig, config, "verification")
         self.map, self.config = ref_map, config
+        self.threads = resolve_threads(config.threads)
         self.store: FeatureStore | None = None
         self.unavailable = ""  # why answers are unverified ("" = verification runs)
         self.images_root: Path | None = None
@@ -239,20 +246,24 @@ class Verifier:
 
     def inliers(self, query: LocalFeatures, refs: Sequence[LocalFeatures | None]
                 ) -> tuple[np.ndarray, list[np.ndarray]]:
-        """Inlier counts (-1 where a reference has no features) and the inlier matches."""
-        counts, kept = np.full(len(refs), -1, np.int64), []
-        with one_blas_thread():
-            prepared = self.matcher.prepare(query)
-            for i, r in enumerate(refs):
-                if r is None:
-                    kept.append(np.zeros((0, 2), np.int64))
-                    continue
+        """Inlier counts (-1 where a reference has no features) and the inlier matches; the
+        candidates are shared between ``threads`` threads (:mod:`.share`: same answers)."""
+        prepared = self.matcher.prepare(query)
+
+        def one(i: int) -> tuple[int, np.ndarray]:
+            r = refs[i]
+            if r is None:
+                return -1, np.zeros((0, 2), np.int64)
+            with one_blas_thread():  # on this thread: a BLAS setting may be per thread
                 m = self.matcher.match(prepared, query, r)
-                mask = fundamental_inliers(query.keypoints[m[:, 0]], r.keypoints[m[:, 1]],
-                                           self.geometry) if len(m) else np.zeros(0, bool)
-                counts[i] = int(mask.sum())
-                kept.append(m[mask])
-        return counts, kept
+            mask = fundamental_inliers(query.keypoints[m[:, 0]], r.keypoints[m[:, 1]],
+                                       self.geometry) if len(m) else np.zeros(0, bool)
+            return int(mask.sum()), m[mask]
+
+        threads = self.threads if self.matcher.shares_threads else 1
+        with one_blas_thread():
+            done = map_shared(one, len(refs), threads)
+        return np.array([c for c, _ in done], np.int64), [m for _, m in done]
 
     # -- the stage ---------------------------------------------------------------------------
     def to_verify(self, candidates: Sequence[Any]) -> list[Any]:

@@ -1,0 +1,57 @@
+"""Thread settings of one query: BLAS on the calling thread, and the cores a process may use.
+
+A query's products are small (a VLAD assignment of ~1,000 × 128 by 64 words, a PCA projection,
+~20 verification products of ~700 × ~750 × 128): an OpenBLAS thread team gains nothing on them,
+and after each call its workers spin for a while before they sleep. On a 2-core machine those
+spinning workers take the core the query's other work needs (issue 31, quiet 2-core AVX2 EPYC,
+SF night queries: descriptor 90 → 72 ms and the verification stage on two threads 99 → 62 ms
+once every BLAS call of the query ran on one thread). So the query path holds
+:func:`one_blas_thread` and uses the second core explicitly, where the work divides into whole
+pieces (verification's candidates: :mod:`vlm_vpr_ros.localization.verification.share`).
+
+The limit covers every BLAS that threadpoolctl finds (numpy's OpenBLAS, FAISS's, OpenCV's) and
+is restored on leaving (threadpoolctl's context manager). How far a setting reaches depends on
+the library: an OpenMP build's (FAISS's) is per thread, and an OpenBLAS pthreads build's
+setting made on one thread was seen by the others in some orders and not in others (measured
+here, OpenBLAS 0.3.31 and 0.3.15). So every thread that runs query products holds it itself
+(verification's helpers too), and a worker thread may leave BLAS on one thread after its
+queries — which its next queries want anyway. The controller
+that finds the libraries is made once (its search costs ~0.5 ms; a limit then ~20 µs) and again
+when a library that brings its own BLAS is imported later.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import threading
+from typing import Any
+
+_controller: tuple[tuple[bool, ...], Any] | None = None
+_lock = threading.Lock()
+#: modules whose import loads a BLAS of their own
+_BLAS_MODULES = ("numpy", "faiss", "cv2", "torch", "scipy")
+
+
+def _blas_controller() -> Any:
+    global _controller
+    from threadpoolctl import ThreadpoolController
+
+    loaded = tuple(m in sys.modules for m in _BLAS_MODULES)
+    with _lock:
+        if _controller is None or _controller[0] != loaded:
+            _controller = (loaded, ThreadpoolController())
+        return _controller[1]
+
+
+def one_blas_thread() -> Any:
+    """Context manager: every BLAS on one thread while it is held (module docstring)."""
+    return _blas_controller().limit(limits=1, user_api="blas")
+
+
+def usable_cores() -> int:
+    """Cores this process may run on (its CPU affinity, else the CPU count)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
