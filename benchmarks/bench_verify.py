@@ -49,6 +49,7 @@ from benchmarks import cpuinfo  # noqa: E402
 
 from vlm_vpr_ros.files.images import load_image  # noqa: E402
 from vlm_vpr_ros.localization.pipeline import LocalizationPipeline  # noqa: E402
+from vlm_vpr_ros.localization.verification.share import resolve_threads  # noqa: E402
 from vlm_vpr_ros.localization.verification.sift import match_reference  # noqa: E402
 from vlm_vpr_ros.mapping.build_images import build_map  # noqa: E402
 from vlm_vpr_ros.mapping.coords_csv import read_coords_csv  # noqa: E402
@@ -210,7 +211,7 @@ def main() -> int:
         stage = med(t[f"stage: {VERIFIED[0][0]}"])
         before = med(t[f"stage: {VERIFIED[-1][0]}"])
         one = med(t[f"stage: {VERIFIED[1][0]}"])
-        threads = LocalizationPipeline.open(map_dir).verifier.threads
+        threads = resolve_threads(0)  # the default's threads on this machine
         print(f"  verification stage, same run: {stage:.1f} ms ({threads} threads) vs "
               f"{before:.1f} ms as before issue 31 ({stage / before:.2f}x; 1 thread "
               f"{one / before:.2f}x)")

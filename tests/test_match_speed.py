@@ -91,5 +91,7 @@ def test_registry_matcher_and_too_few_features():
     got = {tuple(p) for p in m.match(m.prepare(fq), fq, fr).tolist()}
     assert got == brute_force(sift.rootsift(fq.descriptors), sift.rootsift(fr.descriptors),
                               0.8, 2.0) and len(got) > 100
+    into = np.full(fq.descriptors.shape, np.nan, np.float32)  # the matcher's scratch path
+    assert np.array_equal(sift.rootsift(fq.descriptors, into), sift.rootsift(fq.descriptors))
     tiny = LocalFeatures(fq.keypoints[:1], fq.descriptors[:1], (640, 480))
     assert m.match(m.prepare(tiny), tiny, fq).shape == (0, 2)  # fewer than 2: no pairs

@@ -254,15 +254,13 @@ class Verifier:
             r = refs[i]
             if r is None:
                 return -1, np.zeros((0, 2), np.int64)
-            with one_blas_thread():  # on this thread: a BLAS setting may be per thread
+            with one_blas_thread():  # on the thread that runs it: a setting may be per thread
                 m = self.matcher.match(prepared, query, r)
             mask = fundamental_inliers(query.keypoints[m[:, 0]], r.keypoints[m[:, 1]],
                                        self.geometry) if len(m) else np.zeros(0, bool)
             return int(mask.sum()), m[mask]
 
-        threads = self.threads if self.matcher.shares_threads else 1
-        with one_blas_thread():
-            done = map_shared(one, len(refs), threads)
+        done = map_shared(one, len(refs), self.threads if self.matcher.shares_threads else 1)
         return np.array([c for c, _ in done], np.int64), [m for _, m in done]
 
     # -- the stage ---------------------------------------------------------------------------
