@@ -258,9 +258,13 @@ def main() -> int:
     ap.add_argument("--top-p", type=int, default=50)
     ap.add_argument("--submap-size", type=int, default=41_000)
     ap.add_argument("--json", type=Path, default=None, help="also write the rows as JSON here")
+    ap.add_argument("--node-malloc", action="store_true",
+                    help="glibc malloc as the node sets it (vlm_vpr_ros/ros/malloc.py)")
     cpuinfo.add_argument(ap)
     cpuinfo.apply_cpu_paths()
     a = ap.parse_args()
+    if a.node_malloc:
+        print(cpuinfo.node_malloc())
     print(cpuinfo.cpu_line(), flush=True)
     import faiss
 

@@ -22,8 +22,9 @@ Map: SF night (../shared/data/sf_night, 332 references, night queries) when pres
 Intake: ``QueryRuntime.on_frame`` (what the image callback calls) is timed 2000 times while
 verified queries run in the worker; the target is "never blocks" (max in microseconds).
 
-``--node-malloc``: glibc's malloc as the node sets it (``vlm_vpr_ros/ros/malloc.py``: blocks
-from 256 KiB mmapped, 2 arenas), where every large temporary is a fresh zero-filled mapping.
+``--node-malloc``: glibc's malloc as the node sets it (``vlm_vpr_ros/ros/malloc.py``: 2 arenas,
+mmap threshold 32 MiB, trim threshold 256 MiB; before issue 31's second round: blocks from 256
+KiB mmapped, where every large temporary was a fresh zero-filled mapping).
 
     .venv/bin/python benchmarks/bench_verify.py [--map DIR] [--queries N] [--repeat R]
         [--node-malloc]
@@ -187,14 +188,12 @@ def main() -> int:
     ap.add_argument("--repeat", type=int, default=1)
     ap.add_argument("--intake-s", type=float, default=20.0)
     ap.add_argument("--node-malloc", action="store_true",
-                    help="glibc malloc as the node sets it (mmap from 256 KiB, 2 arenas)")
+                    help="glibc malloc as the node sets it (vlm_vpr_ros/ros/malloc.py)")
     cpuinfo.add_argument(ap)
     cpuinfo.apply_cpu_paths()
     args = ap.parse_args()
     if args.node_malloc:
-        from vlm_vpr_ros.ros.malloc import tune_malloc
-
-        print(f"# malloc: the node's settings (applied: {tune_malloc()})")
+        print(cpuinfo.node_malloc())
     print(cpuinfo.cpu_line(), flush=True)
     with tempfile.TemporaryDirectory() as tmp:
         map_dir, images, label = data(Path(tmp), args.map)

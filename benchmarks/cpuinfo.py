@@ -180,6 +180,17 @@ def describe() -> dict[str, Any]:
             "python": platform.python_version()}
 
 
+def node_malloc() -> str:
+    """glibc's malloc as the node sets it (``vlm_vpr_ros/ros/malloc.py``), applied to this
+    process now; the '# malloc' line that says so (``--node-malloc`` of the benchmarks)."""
+    from vlm_vpr_ros.ros import malloc
+
+    applied = malloc.tune_malloc()
+    return (f"# malloc: the node's settings (2 arenas, mmap threshold "
+            f"{malloc.MMAP_THRESHOLD // 2 ** 20} MiB, trim threshold "
+            f"{malloc.TRIM_THRESHOLD // 2 ** 20} MiB; applied: {applied})")
+
+
 def cpu_line() -> str:
     """Several lines, '# '-prefixed: CPU, SIMD per library, BLAS, threads, load, code paths."""
     d = describe()

@@ -307,17 +307,21 @@ def test_cli_calibrate_sets_the_user_factors(tmp_path, capsys):
 @pytest.mark.parametrize("q", [0.68, 0.95])
 def test_mixture_radius_matches_a_scalar_bisection(q):
     """The vectorized radius search equals a plain 60-step scalar bisection (independent
-    reference) for a continuous miss CDF and for a step-function one."""
-    from vlm_vpr_ros.localization.fusion.posterior import _mixture_radius
+    reference) for a continuous miss CDF and for a step-function one (searched with and
+    without the step shortcut)."""
+    from vlm_vpr_ros.localization.fusion.posterior import _mixture_radii
 
     rng = np.random.default_rng(5)
     d = np.sort(rng.uniform(0, 3000, 40))
     w = rng.dirichlet(np.ones(40)) * 0.7
     steps = np.sort(rng.uniform(0, 15000, 200))
-    cdfs = {"smooth": lambda r: 1.0 - np.exp(-np.asarray(r, dtype=float) / 800.0),
-            "steps": lambda r: np.searchsorted(steps, r, side="right") / len(steps)}
-    for name, cdf in cdfs.items():
-        got = _mixture_radius(q, d, w, 0.3, cdf)
+    levels = np.arange(1, 201) / 200.0
+    cdfs = {"smooth": (lambda r: 1.0 - np.exp(-np.asarray(r, dtype=float) / 800.0), None),
+            "steps": (lambda r: np.searchsorted(steps, r, side="right") / len(steps), None),
+            "steps, shortcut": (lambda r: np.searchsorted(steps, r, side="right") / len(steps),
+                                (steps, levels))}
+    for name, (cdf, step) in cdfs.items():
+        got = _mixture_radii((q,), d, w, 0.3, cdf, step)[0]
 
         def mass(r):
             return w[d <= r].sum() + 0.3 * float(np.asarray(cdf(np.array([r])))[0])
@@ -328,3 +332,51 @@ def test_mixture_radius_matches_a_scalar_bisection(q):
             lo, hi = (lo, mid) if mass(mid) >= q else (mid, hi)
         assert got == pytest.approx(hi, rel=1e-5, abs=5e-3), name
         assert mass(got) >= q - 1e-12
+
+
+def test_step_shortcut_gives_the_grid_search_bit_for_bit():
+    """The radius search without evaluating a step-function miss CDF (the map's background)
+    returns exactly what the 64-point grid rounds return, on random mixtures with repeated
+    steps, zero and full miss mass, points beyond every step and quantiles never reached."""
+    from vlm_vpr_ros.localization.fusion.posterior import _mixture_radii
+
+    rng = np.random.default_rng(31)
+    for trial in range(400):
+        n, m = int(rng.integers(1, 60)), int(rng.integers(1, 400))
+        scale = 10.0 ** rng.uniform(-3, 4)
+        d = rng.uniform(0, scale, n) * (rng.random(n) < 0.9)
+        w = rng.dirichlet(np.ones(n)) * rng.uniform(0.0, 1.0)
+        bd = np.sort(np.round(rng.uniform(0, scale * rng.uniform(0.1, 30), m),
+                              int(rng.integers(0, 4))))  # rounded: repeated steps
+        bcum = np.cumsum(rng.random(m) * (rng.random(m) < 0.7))
+        bcum = bcum / bcum[-1] if bcum[-1] > 0 else np.ones(m)
+        miss = float(rng.choice([0.0, 1.0, rng.uniform(0, 1)]))
+
+        def cdf(r):
+            k = np.searchsorted(bd, r, side="right")
+            return np.where(k > 0, bcum[np.maximum(k - 1, 0)], 0.0)
+
+        qs = (0.68, 0.95, float(rng.uniform(0, 1.2)))
+        want = _mixture_radii(qs, d, w, miss, cdf)
+        got = _mixture_radii(qs, d, w, miss, cdf, (bd, bcum))
+        assert got == want, (trial, got, want)
+
+
+def test_fuse_with_the_prior_distances_given_equals_fuse_computing_them():
+    """The paper mode hands fuse() the distances to the prior it already computed: the same
+    posterior, vote, estimate and radii."""
+    rng = np.random.default_rng(3)
+    lat, lon = 40 + rng.normal(0, 0.05, 50), -3.7 + rng.normal(0, 0.05, 50)
+    l2 = np.sort(rng.uniform(0.5, 1.5, 50))
+    bg = (40 + rng.normal(0, 2, 300), -3.7 + rng.normal(0, 2, 300), rng.uniform(1, 9, 300))
+    model = ErrorModel((5.0, 300.0), (0.6, 0.39), 0.01)
+    prior = (40.01, -3.69)
+    g = haversine_km(prior[0], prior[1], lat, lon)
+    for fixed in (None, 3):
+        a = fuse(l2, lat, lon, 0.2, prior=prior, error_model=model, background=bg,
+                 fixed_best=fixed)
+        b = fuse(l2, lat, lon, 0.2, prior=prior, error_model=model, background=bg,
+                 fixed_best=fixed, prior_km=g)
+        assert np.array_equal(a.weights, b.weights) and np.array_equal(a.votes, b.votes)
+        assert (a.best, a.r68_m, a.r95_m) == (b.best, b.r68_m, b.r95_m)
+        assert np.array_equal(a.extra["prior_km"], b.extra["prior_km"])

@@ -177,28 +177,61 @@ def test_pooled_small_submaps_give_each_submaps_own_distances(kind, monkeypatch)
 
 def test_rerank_distances_are_exact_float32_distances_to_the_fp16_vectors(monkeypatch):
     """The pq re-rank (OpenCV, or FAISS's fp16 decoder on one OpenMP thread in a query) gives
-    the exact float32 distances to the fp16 vectors, bit for bit, for odd and even dims, in one
-    block of rows or several."""
+    the exact float32 distances to the fp16 vectors, bit for bit, for odd and even dims, in
+    fresh arrays (a few rows) or this thread's buffers (one block of rows or several, after
+    calls of other sizes, and another thread's); rows outside the vectors are an error."""
+    import threading
+
     from vlm_vpr_ros.maps import indexes
     from vlm_vpr_ros.maps.indexes import exact_sq_l2
     from vlm_vpr_ros.maps.search import one_faiss_thread
 
     rng = np.random.default_rng(7)
-    for dim, n, k in ((24, 300, 120), (33, 300, 120), (512, 300, 120), (512, 3000, 1001),
-                      (96, 3000, 2000)):  # the last two: several blocks, a partial last one
+    for dim, n, k, block_bytes in ((24, 300, 120, None), (33, 300, 120, None),
+                                   (512, 300, 120, None), (512, 3000, 1001, None),
+                                   (512, 3000, 1001, 64 * 2048),  # 64 rows: several blocks
+                                   (96, 3000, 2000, 384 * 300),  # a partial last block
+                                   (64, 300, 260, None),  # buffers reused, after larger calls
+                                   (24, 300, 7, None)):  # a few rows: fresh arrays
         half = (rng.normal(size=(n, dim)) * rng.uniform(0.01, 100)).astype(np.float16)
         rows = np.sort(rng.choice(n, k, replace=False))
         q = rng.normal(size=(1, dim)).astype(np.float32)
         want = half[rows].astype(np.float32) - q  # fp16 -> float32 is exact
         want = np.einsum("ij,ij->i", want, want)
-        with one_faiss_thread():
-            got = exact_sq_l2(half, rows, q)
-        assert got.dtype == np.float32 and np.array_equal(got, want)
-        assert np.array_equal(exact_sq_l2(half, rows, q), want)
         with monkeypatch.context() as m:
+            if block_bytes:
+                m.setattr(indexes, "RERANK_BLOCK_BYTES", block_bytes)
+            with one_faiss_thread():
+                got = exact_sq_l2(half, rows, q)
+            assert got.dtype == np.float32 and np.array_equal(got, want)
+            assert np.array_equal(exact_sq_l2(half, rows, q), want)
+            other: list = []
+            t = threading.Thread(target=lambda: other.append(exact_sq_l2(half, rows, q)))
+            t.start()
+            t.join()
+            assert np.array_equal(other[0], want)
             m.setattr(indexes, "_cv2", lambda: None)  # FAISS's decoder
             assert np.array_equal(exact_sq_l2(half, rows, q), want)
     assert exact_sq_l2(half, rows[:0], q).shape == (0,)
+    with pytest.raises(IndexError):  # a few rows: fresh arrays (numpy's own bounds check)
+        exact_sq_l2(half, np.array([0, len(half)]), q)
+    wide = np.zeros((300, 512), np.float16)  # the thread's buffers: rows checked (take, clip)
+    many = np.arange(len(wide))
+    for bad in (many + 1, many - 1):
+        with pytest.raises(IndexError, match="re-rank rows"):
+            exact_sq_l2(wide, bad, np.zeros((1, 512), np.float32))
+
+
+def test_unique_ints_is_numpy_unique():
+    """The sort-based unique of a pass's keys equals ``np.unique`` (empty, one, repeats)."""
+    from vlm_vpr_ros.maps.search import unique_ints
+
+    rng = np.random.default_rng(2)
+    for n in (0, 1, 2, 7, 800):
+        for hi in (1, 3, 2 ** 50):
+            a = rng.integers(0, hi, n, dtype=np.int64)
+            assert np.array_equal(unique_ints(a), np.unique(a))
+            assert unique_ints(a).dtype == np.int64
 
 
 def test_one_faiss_thread_is_per_thread_and_restored(maps):

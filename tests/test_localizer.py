@@ -57,6 +57,42 @@ def test_search_equals_numpy_brute_force_global_and_submap():
         assert [c.ref_id for c in cands] == [ids[i] for i in sub_rows]
 
 
+@pytest.mark.parametrize("saved", [False, True])
+@pytest.mark.parametrize("per_submap", [1, 10 ** 6])
+def test_retrieved_arrays_are_the_hits_positions_and_ids(tmp_path, monkeypatch, saved,
+                                                         per_submap):
+    """What localize() fuses (``Localizer.retrieve``: a read per submap, or per hit when the
+    hits are spread) equals reading each hit's id, position and submap one by one, in memory
+    and from a saved (memory-mapped) map, for one submap, several, and with the global merge;
+    ``search`` gives the same candidates."""
+    from vlm_vpr_ros.localization import localizer
+    from vlm_vpr_ros.maps.reference_map import ReferenceMap
+
+    monkeypatch.setattr(localizer, "READS_PER_SUBMAP", per_submap)
+
+    m, desc, _ = synthetic_map(clusters=4)
+    if saved:
+        m.save(tmp_path / "map")
+        m = ReferenceMap.load(tmp_path / "map")
+    loc = Localizer(m, LocalizerConfig(top_p=30))
+    rng = np.random.default_rng(4)
+    everything = list(range(len(m.submaps)))
+    for sets, with_global in (([0], False), ([1, 3], False), (everything, False), ([2], True)):
+        q = rng.normal(size=desc.shape[1]).astype(np.float32)
+        got = loc.retrieve(q, sets, 30, with_global)
+        dist, sub, row = m.rank_submaps(sets, q[None, :], 30, with_global)
+        assert len(got) == len(dist) > 0
+        assert got.l2_sq.tolist() == dist.tolist() and got.rows.tolist() == row.tolist()
+        for i, (si, j) in enumerate(zip(sub.tolist(), row.tolist())):
+            s = m.submaps[si]
+            assert got.ref_ids[i] == s.ids[j] and got.submaps[i] == s.id
+            assert (got.lat[i], got.lon[i]) == (float(s.coords[j, 0]), float(s.coords[j, 1]))
+        cands = loc.search(q, sets, 30, with_global)
+        assert [(c.ref_id, c.lat, c.lon, c.l2_sq, c.submap, c.row) for c in cands] == list(zip(
+            got.ref_ids, got.lat.tolist(), got.lon.tolist(), got.l2_sq.tolist(), got.submaps,
+            got.rows.tolist()))
+
+
 def test_rerank_chooses_nearest_candidate_to_prior():
     m, desc, ids = synthetic_map()
     loc = Localizer(m, LocalizerConfig(top_p=50, use_submaps=False, fusion="paper"))

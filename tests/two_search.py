@@ -9,7 +9,7 @@ import dataclasses
 
 import numpy as np
 
-from vlm_vpr_ros.localization.localizer import Localizer
+from vlm_vpr_ros.localization.localizer import Localizer, Retrieved
 from vlm_vpr_ros.types import Candidate
 
 
@@ -70,6 +70,10 @@ class TwoSearchLocalizer(Localizer):
                      if (c.submap, c.ref_id) not in seen]
             cands = sorted(cands + extra, key=lambda c: c.l2_sq)
         return cands
+
+    def retrieve(self, desc, submaps, k, with_global=False):
+        """What ``localize`` fuses: this class's candidates as arrays."""
+        return Retrieved.from_candidates(self.search(desc, submaps, k, with_global))
 
 
 def answer(h):

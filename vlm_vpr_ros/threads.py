@@ -1,4 +1,5 @@
-"""Thread settings of one query: BLAS on the calling thread, and the cores a process may use.
+"""Thread settings of one query: BLAS on the calling thread, the cores a process may use, and
+each thread's scratch buffers.
 
 A query's products are small (a VLAD assignment of ~1,000 × 128 by 64 words, a PCA projection,
 ~20 verification products of ~700 × ~750 × 128): an OpenBLAS thread team gains nothing on them,
@@ -18,19 +19,30 @@ here, OpenBLAS 0.3.31 and 0.3.15). So every thread that runs query products hold
 queries — which its next queries want anyway. The controller
 that finds the libraries is made once (its search costs ~0.5 ms; a limit then ~20 µs) and again
 when a library that brings its own BLAS is imported later.
+
+:func:`scratch` keeps a query's large temporaries (verification's similarity matrix, the
+re-rank's rows) in buffers of the thread, reused from query to query: allocated per query, glibc
+maps such blocks fresh and the kernel zero-fills them every time, and under the node's malloc
+settings of issue 29 (blocks from 256 KiB mmapped) that cost as much as the work itself
+(issue 31: the verification stage 122-136 against 56-70 ms on one thread; the re-rank of 800
+fp16 rows 4.6 ms against 0.35 ms).
 """
 
 from __future__ import annotations
 
+import math
 import os
 import sys
 import threading
 from typing import Any
 
+import numpy as np
+
 _controller: tuple[tuple[bool, ...], Any] | None = None
 _lock = threading.Lock()
 #: modules whose import loads a BLAS of their own
 _BLAS_MODULES = ("numpy", "faiss", "cv2", "torch", "scipy")
+_scratch = threading.local()
 
 
 def _blas_controller() -> Any:
@@ -55,3 +67,20 @@ def usable_cores() -> int:
         return max(1, len(os.sched_getaffinity(0)))
     except (AttributeError, OSError):
         return max(1, os.cpu_count() or 1)
+
+
+def scratch(name: str, shape: tuple[int, ...], dtype: Any = np.float32) -> np.ndarray:
+    """An array of ``shape`` and ``dtype`` in a buffer of this thread kept between calls (one
+    per name and dtype, grown when too small); its content is whatever the last user left.
+    Only for temporaries that no result refers to, used by one caller at a time."""
+    size = math.prod(shape)
+    try:
+        bufs = _scratch.bufs
+    except AttributeError:
+        bufs = _scratch.bufs = {}
+    key = (name, dtype)
+    buf = bufs.get(key)
+    if buf is None or buf.size < size:
+        buf = bufs[key] = np.empty(max(size, int(1.25 * (0 if buf is None else buf.size))),
+                                   dtype)
+    return buf[:size].reshape(shape)

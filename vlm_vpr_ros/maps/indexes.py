@@ -21,6 +21,7 @@ import numpy as np
 
 from vlm_vpr_ros.config import choose
 from vlm_vpr_ros.errors import MapError
+from vlm_vpr_ros.threads import scratch
 
 log = logging.getLogger(__name__)
 
@@ -155,43 +156,63 @@ def pq_candidates(index: Any, q: np.ndarray, kk: int) -> tuple[np.ndarray, np.nd
     return dist[0][keep], idx[0][keep]
 
 
-#: bytes of float32 rows the re-rank handles at once (module constant, below glibc's mmap
-#: threshold and the node's 256 KiB one: block buffers come from the heap and stay in cache)
-RERANK_BLOCK_BYTES = 128 * 1024
+#: the most bytes of float32 rows the re-rank handles at once (this thread's buffers are this
+#: size at most: 2,048 rows at 512-D; a query's re-rank, k·rerank_factor = 800 rows, is one call)
+RERANK_BLOCK_BYTES = 4 * 2 ** 20
+#: up to this many bytes of float32 rows, fresh arrays (small heap blocks, no set-up)
+RERANK_SMALL_BYTES = 64 * 2 ** 10
 
 
 def exact_sq_l2(rerank: np.ndarray, rows: np.ndarray, q: np.ndarray) -> np.ndarray:
     """Stage 2: exact squared L2 of ``q`` to the fp16 re-rank vectors of ``rows`` (ascending
-    rows read the memory-mapped file in order): ``float32(v) - q`` then the sum of squares,
-    the fp16 -> float32 conversion and the difference in one OpenCV call (F16C SIMD, one
-    thread; exact: every fp16 value is a float32). FAISS's fp16 decoder converts one value at
-    a time (issue 31: ``benchmarks/bench_scale.py`` compares both) and numpy's cast is slower
-    still; without OpenCV the decoder is used, on the calling thread's OpenMP setting
+    rows read the memory-mapped file in order; each row must be in the file: a row beyond it
+    is an IndexError): ``float32(v) - q`` then the sum of squares, the fp16 -> float32
+    conversion and the difference in one OpenCV call (F16C SIMD, one thread; exact: every
+    fp16 value is a float32). FAISS's fp16 decoder converts one value at a time (issue 31:
+    ``benchmarks/bench_scale.py`` compares both) and numpy's cast is slower still; without
+    OpenCV the decoder is used, on the calling thread's OpenMP setting
     (:func:`vlm_vpr_ros.maps.search.one_faiss_thread`).
 
-    Rows are taken in blocks of :data:`RERANK_BLOCK_BYTES` (64 rows at 512-D) into buffers
-    made once per call: 800 rows at once needed three 0.8-1.6 MB temporaries, which glibc maps
-    fresh and the kernel zero-fills at every query (issue 31, 2-core AVX2 EPYC, 800 × 512-D:
-    4.6 ms at once, 0.4-0.8 ms in blocks, the same floats; tests/test_fusion_search.py)."""
+    Above :data:`RERANK_SMALL_BYTES` the rows, the repeated query and the differences go into
+    buffers of the calling thread (:func:`vlm_vpr_ros.threads.scratch`), up to
+    :data:`RERANK_BLOCK_BYTES` at a time: fresh arrays of that size are blocks that glibc may
+    map and the kernel zero-fill at every query (issue 31, 2-core AVX2 EPYC, 800 × 512-D rows:
+    4.6 ms in fresh arrays under the node's malloc settings of that time, 0.5 ms in 128 KiB
+    blocks of fresh arrays, 0.35-0.44 ms in the thread's buffers; the same floats:
+    tests/test_fusion_search.py). Below it fresh arrays cost less than the buffers' set-up (a
+    posterior's re-rank reads a few rows of each of many submaps: 11 rows 19 against 48 us)."""
     rows = np.asarray(rows)
     out = np.empty(len(rows), np.float32)
     if not len(rows):
         return out
     dim = int(rerank.shape[1])
-    block = max(8, RERANK_BLOCK_BYTES // (4 * dim))
     qf = np.asarray(q, np.float32).reshape(1, -1)
     cv2 = _cv2()
-    if cv2 is not None:
-        # q repeated per row: OpenCV copies a broadcast (stride 0) operand element by element
-        tiled = np.repeat(qf, min(block, len(rows)), axis=0)
-        vecs = np.empty_like(tiled)
-    for s in range(0, len(rows), block):
-        half = rerank[rows[s:s + block]]
-        n = len(half)
+    if len(rows) * dim * 4 <= RERANK_SMALL_BYTES:
+        half = rerank[rows]
         if cv2 is not None:
-            v = cv2.subtract(half, tiled[:n], dst=vecs[:n], dtype=cv2.CV_32F)
+            v = cv2.subtract(half, np.repeat(qf, len(rows), axis=0), dtype=cv2.CV_32F)
         else:
             v = _fp16_codec(dim).decode(np.ascontiguousarray(half).view(np.uint8))
+            v -= qf
+        return np.einsum("ij,ij->i", v, v, out=out)
+    if int(rows.min()) < 0 or int(rows.max()) >= len(rerank):  # np.take(mode="clip") below
+        raise IndexError(f"re-rank rows outside 0..{len(rerank) - 1}")
+    block = min(len(rows), max(8, RERANK_BLOCK_BYTES // (4 * dim)))
+    half = scratch("rerank.rows", (block, dim), rerank.dtype)
+    if cv2 is not None:
+        # q repeated per row: OpenCV copies a broadcast (stride 0) operand element by element
+        tiled = scratch("rerank.query", (block, dim))
+        tiled[:] = qf
+        vecs = scratch("rerank.diff", (block, dim))
+    for s in range(0, len(rows), block):
+        n = len(rows[s:s + block])
+        # mode="clip" (rows checked above): numpy's default mode copies through another buffer
+        h = np.take(rerank, rows[s:s + block], axis=0, out=half[:n], mode="clip")
+        if cv2 is not None:
+            v = cv2.subtract(h, tiled[:n], dst=vecs[:n], dtype=cv2.CV_32F)
+        else:
+            v = _fp16_codec(dim).decode(np.ascontiguousarray(h).view(np.uint8))
             v -= qf
         np.einsum("ij,ij->i", v, v, out=out[s:s + n])
     return out

@@ -22,7 +22,7 @@ from vlm_vpr_ros.descriptors import GlobalDescriptor, create_descriptor
 from vlm_vpr_ros.errors import MapError
 from vlm_vpr_ros.maps import indexes, store, v1
 from vlm_vpr_ros.maps.format import check_descriptor_identity, load_state, read_manifest
-from vlm_vpr_ros.maps.search import SmallSubmaps, SubmapPass
+from vlm_vpr_ros.maps.search import Hits, SmallSubmaps, SubmapPass, unique_ints
 from vlm_vpr_ros.maps.submap import Submap
 
 log = logging.getLogger(__name__)
@@ -101,10 +101,18 @@ class ReferenceMap:
     def search_submaps(self, submaps: list[int], q: np.ndarray, k: int,
                        with_global: bool = False) -> list[tuple[float, int, int]]:
         """Top-``k`` (squared L2, submap, row) over several submaps, best first (ties by
-        submap, row). flat/fp16 submaps are searched exactly, one by one; pq submaps together,
-        as one pq index over their union would be: PQ candidates from each (serially: threads
-        measured slower, OpenMP teams contend), then only the best ``k·rerank_factor`` of them
-        all are re-ranked exactly (one re-rank per query, not one per submap).
+        submap, row): :meth:`rank_submaps` as a list of tuples."""
+        dist, sub, row = self.rank_submaps(submaps, q, k, with_global)
+        return list(zip(dist.tolist(), sub.tolist(), row.tolist()))
+
+    def rank_submaps(self, submaps: list[int], q: np.ndarray, k: int,
+                     with_global: bool = False) -> Hits:
+        """Top-``k`` hits over several submaps as arrays (squared L2 float32, submap, row),
+        best first (ties by submap, row). flat/fp16 submaps are searched exactly, one by one;
+        pq submaps together, as one pq index over their union would be: PQ candidates from
+        each (serially: threads measured slower, OpenMP teams contend), then only the best
+        ``k·rerank_factor`` of them all are re-ranked exactly (one re-rank per query, not one
+        per submap).
 
         ``with_global``: also the map's global top-``k`` hits that the ranking of ``submaps``
         lacks, merged in by distance (``submaps``' hits first on ties): the posterior fusion's
@@ -114,7 +122,7 @@ class ReferenceMap:
         sweep = SubmapPass(self.submaps, q, k, self.rerank_factor, small)
         dist, sub, row = sweep.rank_with_global(submaps) if with_global else \
             sweep.rank(submaps)[0]
-        touched = np.unique(sub).tolist()
+        touched = unique_ints(sub).tolist()
         advise = len(touched) > 1 and self.row_bytes(("coords", "ids")) >= PREFETCH_MIN_BYTES
         for si in touched:  # the caller reads the hits' ids and positions next; a pooled
             # submap's hits came from its copy in RAM: its index file is checked here too, so
@@ -122,7 +130,7 @@ class ReferenceMap:
             self.submaps[si].check_files(POOLED_ROLES if small.pooled[si] else HIT_ROLES)
             if advise:  # cold pages of several files: reads queued at once
                 self.submaps[si].prefetch(np.sort(row[sub == si]), ("coords", "ids"))
-        return list(zip(dist.tolist(), sub.tolist(), row.tolist()))
+        return dist, sub, row
 
     def row_bytes(self, roles: tuple[str, ...]) -> int:
         """Bytes on disk of the submaps' files in ``roles`` (v2 manifest; 0 in memory)."""

@@ -144,6 +144,10 @@ class IdView:
     def __getitem__(self, i: int) -> str:
         return bytes(self._raw[i]).decode("utf-8", errors="replace")
 
+    def take(self, rows: Any) -> list[str]:
+        """The ids of these rows (one read of the mapped array)."""
+        return [b.decode("utf-8", errors="replace") for b in self._raw[rows].tolist()]
+
     def __iter__(self) -> Iterator[str]:
         for start in range(0, len(self._raw), 65536):
             for b in self._raw[start:start + 65536].tolist():

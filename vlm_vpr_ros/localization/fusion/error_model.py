@@ -20,6 +20,7 @@ validated at load and a bad file is a :class:`~vlm_vpr_ros.errors.ConfigError` n
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 from dataclasses import dataclass
@@ -94,23 +95,31 @@ class ErrorModel:
         return cls((float(sigma_km),), (1.0 - uniform_weight,), uniform_weight, name)
 
     # -- evaluation -----------------------------------------------------------------------------
+    @functools.cached_property
+    def _terms(self) -> tuple[tuple[float, float, float], ...]:
+        """(kappa, weight · normalisation, log of it) of each vMF component with weight > 0:
+        constants of every density evaluation, computed once per model."""
+        out = []
+        for s, w in zip(self.sigmas_km, self.weights):
+            if w > 0:
+                k = _kappa(s)
+                log_c = math.log(w) + _log_norm(k)
+                out.append((k, math.exp(log_c), log_c))
+        return tuple(out)
+
     def log_density(self, d_km: Any) -> np.ndarray:
         """log areal density (per km²) of the true position at great-circle distance(s) d."""
         t = np.asarray(d_km, dtype=np.float64) / EARTH_RADIUS_KM
         one_minus_cos = 2.0 * np.sin(t / 2.0) ** 2
         if self.uniform_weight > 1e-12:  # the uniform floor keeps a linear sum from underflow
             dens = np.full(t.shape, self.uniform_weight * math.exp(_LOG_UNIFORM))
-            for s, w in zip(self.sigmas_km, self.weights):
-                if w > 0:
-                    k = _kappa(s)
-                    dens += math.exp(math.log(w) + _log_norm(k)) * np.exp(-k * one_minus_cos)
+            for k, c, _ in self._terms:
+                dens += c * np.exp(-k * one_minus_cos)
             return np.log(dens)
         terms = [np.full(t.shape, math.log(self.uniform_weight) + _LOG_UNIFORM)
                  if self.uniform_weight > 0 else np.full(t.shape, -np.inf)]
-        for s, w in zip(self.sigmas_km, self.weights):
-            if w > 0:
-                k = _kappa(s)
-                terms.append(math.log(w) + _log_norm(k) - k * one_minus_cos)
+        for k, _, log_c in self._terms:
+            terms.append(log_c - k * one_minus_cos)
         return np.logaddexp.reduce(np.stack(terms), axis=0)
 
     def cdf(self, d_km: Any) -> np.ndarray:

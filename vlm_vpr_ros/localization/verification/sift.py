@@ -16,10 +16,10 @@ BFMatcher would search twice. The product (SIMD float32 GEMM) is most of the cos
   of ``argmax(axis=0)`` over the whole matrix (a transposed pass: 1.7 of ~7 ms per candidate
   on the machine of issue 31);
 * the similarity matrix (~2 MB) and the reference's RootSIFT are written into buffers kept per
-  thread (:func:`scratch`): allocated per candidate, glibc maps such blocks fresh and the kernel
-  zero-fills them every time — under the node's malloc settings (``ros/malloc.py``: blocks from
-  256 KiB mmapped) that doubled the stage (issue 31: 122-136 against 56-70 ms, SF night, one
-  thread);
+  thread (:func:`vlm_vpr_ros.threads.scratch`): allocated per candidate, glibc maps such blocks
+  fresh and the kernel zero-fills them every time — under the node's earlier malloc settings
+  (blocks from 256 KiB mmapped) that doubled the stage (issue 31: 122-136 against 56-70 ms, SF
+  night, one thread);
 * the candidates of one query are shared between threads by the stage
   (:mod:`.share`), each product whole on one thread: an earlier split of one product's rows
   over two threads lost time on a quiet machine (a hand-off per product) and was removed.
@@ -30,7 +30,6 @@ of ``benchmarks/bench_verify.py`` and the tests.
 
 from __future__ import annotations
 
-import threading
 from dataclasses import asdict, dataclass
 from typing import Any, Mapping
 
@@ -38,6 +37,7 @@ import numpy as np
 
 from vlm_vpr_ros.config import from_mapping
 from vlm_vpr_ros.errors import ConfigError
+from vlm_vpr_ros.threads import scratch
 from vlm_vpr_ros.descriptors.local_sift import gray_frame, sift_detect, strongest_first
 from vlm_vpr_ros.localization.verification.components import (Component, LocalFeatureExtractor,
                                                               LocalFeatures, Matcher,
@@ -81,24 +81,6 @@ class RootSift(LocalFeatureExtractor):
         """Features from a SIFT pass already made (e.g. by the VLAD descriptor)."""
         xy, des8 = strongest_first(xy, des, resp, max_keypoints)
         return LocalFeatures(xy, des8, (int(size[0]), int(size[1])), float(scale))
-
-
-_scratch = threading.local()
-
-
-def scratch(name: str, shape: tuple[int, ...]) -> np.ndarray:
-    """A float32 array of ``shape`` in a buffer of this thread kept between calls (grown when
-    too small); its content is whatever the last user left. Only for temporaries that no
-    result refers to."""
-    size = int(np.prod(shape))
-    bufs = getattr(_scratch, "bufs", None)
-    if bufs is None:
-        bufs = _scratch.bufs = {}
-    buf = bufs.get(name)
-    if buf is None or buf.size < size:
-        buf = bufs[name] = np.empty(max(size, int(1.25 * (0 if buf is None else buf.size))),
-                                    np.float32)
-    return buf[:size].reshape(shape)
 
 
 def rootsift(des: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
@@ -176,7 +158,7 @@ def mutual_ratio_matches(q: np.ndarray, r: np.ndarray, ratio: float, distance_ma
         # the query must be its column's first best row (argmax's rule on ties): only the
         # columns of the pairs that passed the ratio test are read, not the whole matrix
         col = best[keep]
-        cols = np.take(sim, col, axis=1, out=scratch("cols", (len(sim), len(col))))
+        cols = np.take(sim, col, axis=1, out=scratch("cols", (len(sim), len(col))), mode="clip")
         keep = keep[cols.argmax(axis=0) == keep]
     return np.stack([keep, best[keep]], axis=1).astype(np.int64)
 
