@@ -67,7 +67,7 @@ def _mixture_radii(qs: tuple[float, ...], point_d_km: np.ndarray, point_w: np.nd
         lo = float(d_sorted[k - 1]) if k > 0 else 0.0
         hi = float(d_sorted[k]) if k < len(d_sorted) else MAX_DISTANCE_KM
         below = float(cum[k - 1]) if k > 0 else 0.0  # point mass inside (lo, hi) is constant
-        if below + miss_mass * float(miss_cdf(np.array([hi]))[0]) < q and k == len(d_sorted):
+        if k == len(d_sorted) and below + miss_mass * float(miss_cdf(np.array([hi]))[0]) < q:
             out.append(hi)
         elif steps is None:
             out.append(_grid_search(q, lo, hi, below, miss_mass, miss_cdf))
