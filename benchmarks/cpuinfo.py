@@ -186,7 +186,7 @@ def node_malloc() -> str:
     from vlm_vpr_ros.ros import malloc
 
     applied = malloc.tune_malloc()
-    return (f"# malloc: the node's settings (2 arenas, mmap threshold "
+    return (f"# malloc: the node's settings ({malloc.ARENAS} arenas, mmap threshold "
             f"{malloc.MMAP_THRESHOLD // 2 ** 20} MiB, trim threshold "
             f"{malloc.TRIM_THRESHOLD // 2 ** 20} MiB; applied: {applied})")
 

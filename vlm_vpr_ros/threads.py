@@ -78,7 +78,7 @@ def scratch(name: str, shape: tuple[int, ...], dtype: Any = np.float32) -> np.nd
         bufs = _scratch.bufs
     except AttributeError:
         bufs = _scratch.bufs = {}
-    key = (name, dtype)
+    key = (name, np.dtype(dtype).char)
     buf = bufs.get(key)
     if buf is None or buf.size < size:
         buf = bufs[key] = np.empty(max(size, int(1.25 * (0 if buf is None else buf.size))),

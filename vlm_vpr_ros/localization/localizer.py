@@ -84,10 +84,10 @@ class LocalizerConfig:
 
 @dataclass(frozen=True)
 class Retrieved:
-    """One query's retrieved references as arrays, best first: what fusion reads. Built with
-    one read per submap (its hits' positions and ids), not one per reference; the
-    :class:`Candidate` objects are made once, after fusion (issue 31: the 50 candidates of a
-    query were made twice, ~0.3 ms of a 2.3 ms paper query on the CPU of that issue)."""
+    """One query's retrieved references as arrays, best first: what fusion reads
+    (:meth:`Localizer.retrieve`); the :class:`Candidate` objects are made once, after fusion
+    (issue 31: the 50 candidates of a query were made twice, ~0.3 ms of a 2.3 ms paper query on
+    the CPU of that issue)."""
 
     l2_sq: np.ndarray  # (n,) float64: the squared L2 distances (float32 values)
     lat: np.ndarray  # (n,) float64
@@ -230,7 +230,9 @@ class Localizer:
 
     def retrieve(self, desc: np.ndarray, submaps: list[int], k: int,
                  with_global: bool = False) -> Retrieved:
-        """:meth:`search` as arrays (what :meth:`localize` fuses)."""
+        """:meth:`search` as arrays (what :meth:`localize` fuses): the hits' positions and ids
+        read once per submap when the hits gather in a few submaps (:data:`READS_PER_SUBMAP`),
+        else one hit at a time."""
         q = np.ascontiguousarray(np.asarray(desc, dtype=np.float32).reshape(1, -1))
         if q.shape[1] != self.map.dim:
             raise DescriptorError(f"query descriptor has dim {q.shape[1]}, the map has "

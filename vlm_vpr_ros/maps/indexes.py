@@ -188,29 +188,26 @@ def exact_sq_l2(rerank: np.ndarray, rows: np.ndarray, q: np.ndarray) -> np.ndarr
     dim = int(rerank.shape[1])
     qf = np.asarray(q, np.float32).reshape(1, -1)
     cv2 = _cv2()
-    if len(rows) * dim * 4 <= RERANK_SMALL_BYTES:
-        half = rerank[rows]
+    half = tiled = vecs = None  # a few rows: fresh arrays, one block
+    block = len(rows)
+    if len(rows) * dim * 4 > RERANK_SMALL_BYTES:  # the thread's buffers
+        if int(rows.min()) < 0 or int(rows.max()) >= len(rerank):  # np.take(mode="clip")
+            raise IndexError(f"re-rank rows outside 0..{len(rerank) - 1}")
+        block = min(len(rows), max(8, RERANK_BLOCK_BYTES // (4 * dim)))
+        half = scratch("rerank.rows", (block, dim), rerank.dtype)
         if cv2 is not None:
-            v = cv2.subtract(half, np.repeat(qf, len(rows), axis=0), dtype=cv2.CV_32F)
-        else:
-            v = _fp16_codec(dim).decode(np.ascontiguousarray(half).view(np.uint8))
-            v -= qf
-        return np.einsum("ij,ij->i", v, v, out=out)
-    if int(rows.min()) < 0 or int(rows.max()) >= len(rerank):  # np.take(mode="clip") below
-        raise IndexError(f"re-rank rows outside 0..{len(rerank) - 1}")
-    block = min(len(rows), max(8, RERANK_BLOCK_BYTES // (4 * dim)))
-    half = scratch("rerank.rows", (block, dim), rerank.dtype)
-    if cv2 is not None:
-        # q repeated per row: OpenCV copies a broadcast (stride 0) operand element by element
-        tiled = scratch("rerank.query", (block, dim))
-        tiled[:] = qf
-        vecs = scratch("rerank.diff", (block, dim))
+            tiled = scratch("rerank.query", (block, dim))
+            tiled[:] = qf
+            vecs = scratch("rerank.diff", (block, dim))
     for s in range(0, len(rows), block):
-        n = len(rows[s:s + block])
+        r = rows[s:s + block]
+        n = len(r)
         # mode="clip" (rows checked above): numpy's default mode copies through another buffer
-        h = np.take(rerank, rows[s:s + block], axis=0, out=half[:n], mode="clip")
+        h = rerank[r] if half is None else np.take(rerank, r, axis=0, out=half[:n], mode="clip")
         if cv2 is not None:
-            v = cv2.subtract(h, tiled[:n], dst=vecs[:n], dtype=cv2.CV_32F)
+            # q repeated per row: OpenCV copies a broadcast (stride 0) operand element by element
+            v = cv2.subtract(h, np.repeat(qf, n, axis=0) if tiled is None else tiled[:n],
+                             dst=None if vecs is None else vecs[:n], dtype=cv2.CV_32F)
         else:
             v = _fp16_codec(dim).decode(np.ascontiguousarray(h).view(np.uint8))
             v -= qf

@@ -28,6 +28,8 @@ import os
 _M_TRIM_THRESHOLD = -1
 _M_MMAP_THRESHOLD = -3
 _M_ARENA_MAX = -8
+#: malloc arenas of the node (glibc's default: up to 8 per core, one per thread)
+ARENAS = 2
 #: blocks from this size are mmapped (and so returned to the OS when freed): glibc's maximum on
 #: 64-bit systems, so a query's temporaries and camera frames come from the arenas
 MMAP_THRESHOLD = 32 * 2 ** 20
@@ -35,7 +37,7 @@ MMAP_THRESHOLD = 32 * 2 ** 20
 TRIM_THRESHOLD = 256 * 2 ** 20
 
 
-def tune_malloc(arenas: int = 2) -> bool:
+def tune_malloc(arenas: int = ARENAS) -> bool:
     """Cap glibc's malloc arenas and fix its mmap and trim thresholds (module docstring),
     unless ``MALLOC_ARENA_MAX`` is set (the user's own settings win). True when applied (glibc
     only; elsewhere a no-op). :func:`trim_malloc` hands freed memory back to the OS."""
