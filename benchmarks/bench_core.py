@@ -48,7 +48,7 @@ from vlm_vpr_ros.priors.provider import Prior, PriorResult  # noqa: E402
 SHARED = Path(os.environ.get("VLM_VPR_SHARED", REPO.parent / "shared"))
 MP16 = SHARED / "data" / "mp16_coords" / "coordinates_100K.csv"
 DEFAULT_DESCRIPTOR = "vlad_rootsift"  # build-map's default
-SEARCHES = ("search", "pq_candidates")  # a submap's scans (maps/search.py)
+SEARCHES = ("search", "searchable", "pq_candidates")  # a submap's scans (maps/search.py)
 
 
 def stats(samples: list[float]) -> dict:

@@ -380,3 +380,61 @@ def test_fuse_with_the_prior_distances_given_equals_fuse_computing_them():
         assert np.array_equal(a.weights, b.weights) and np.array_equal(a.votes, b.votes)
         assert (a.best, a.r68_m, a.r95_m) == (b.best, b.r68_m, b.r95_m)
         assert np.array_equal(a.extra["prior_km"], b.extra["prior_km"])
+
+
+def test_prior_weighted_background_given_equals_fuse_weighting_it():
+    """The localizer weights the background once per prior and hands it to fuse(): the same
+    posterior, vote, estimate and radii as fuse() weighting it itself."""
+    from vlm_vpr_ros.localization.fusion.posterior import prior_weighted_background
+
+    rng = np.random.default_rng(5)
+    lat, lon = 40 + rng.normal(0, 0.05, 50), -3.7 + rng.normal(0, 0.05, 50)
+    l2 = np.sort(rng.uniform(0.5, 1.5, 50))
+    bg = (40 + rng.normal(0, 2, 300), -3.7 + rng.normal(0, 2, 300), rng.uniform(1, 9, 300))
+    prior = (40.01, -3.69)
+    for model in (ErrorModel((5.0, 300.0), (0.6, 0.39), 0.01), MODEL):
+        weighted = prior_weighted_background(bg, prior, model)
+        for fixed in (None, 3):
+            a = fuse(l2, lat, lon, 0.2, prior=prior, error_model=model, background=bg,
+                     fixed_best=fixed)
+            b = fuse(l2, lat, lon, 0.2, prior=prior, error_model=model, background=weighted,
+                     fixed_best=fixed, background_weighted=True)
+            assert np.array_equal(a.weights, b.weights) and np.array_equal(a.votes, b.votes)
+            assert (a.best, a.r68_m, a.r95_m) == (b.best, b.r68_m, b.r95_m)
+
+
+def test_a_repeated_prior_gets_the_same_submaps_and_answer_as_a_new_localizer():
+    """The localizer keeps the last prior's submap choice and weighted background: a prior
+    that repeats, another prior in between, or settings changed at run time give what a fresh
+    localizer gives."""
+    rng = np.random.default_rng(6)
+    pos = np.concatenate([rng.normal((40.0, -3.7), 0.5, (150, 2)),
+                          rng.normal((48.8, 2.3), 0.5, (150, 2))])
+    desc = rng.normal(size=(300, 16)).astype(np.float32)
+    m = assemble_map(desc, pos, [f"r{i}" for i in range(300)],
+                     {"name": "synthetic", "dim": 16, "config": {}, "preprocessing": {}}, {},
+                     "kmeans", clusters=6)
+    queries = desc[:4] + 0.05 * rng.normal(size=(4, 16)).astype(np.float32)
+    priors = [prior_at(40.1, -3.6), prior_at(40.1, -3.6), prior_at(48.7, 2.2, 30.0),
+              prior_at(40.1, -3.6), prior_at(40.1, -3.6, 30.0)]
+    for cfg in (LocalizerConfig(top_p=10), LocalizerConfig(top_p=10, fusion="paper"),
+                LocalizerConfig(top_p=10, fusion="paper", n_submaps=2)):
+        kept = Localizer(m, cfg)
+        for q in queries:
+            for pr in priors:
+                fresh = Localizer(m, kept.config)
+                assert kept.select_submaps(pr.prior) == fresh.select_submaps(pr.prior)
+                a, b = kept.localize(q, pr), fresh.localize(q, pr)
+                assert (a.lat, a.lon, a.ref_id, a.submap, a.uncertainty_m, a.radius95_m,
+                        a.confidence, a.flags) == (b.lat, b.lon, b.ref_id, b.submap,
+                                                   b.uncertainty_m, b.radius95_m,
+                                                   b.confidence, b.flags)
+                assert [c.posterior for c in a.candidates] == [c.posterior
+                                                               for c in b.candidates]
+        kept.config = LocalizerConfig(top_p=10, prior_quantile=0.5, fusion=cfg.fusion)
+        pr = priors[0]
+        assert kept.select_submaps(pr.prior) == Localizer(m, kept.config).select_submaps(
+            pr.prior)
+        chosen, _ = kept.select_submaps(pr.prior)
+        chosen.append(-1)  # the caller's list is its own
+        assert -1 not in kept.select_submaps(pr.prior)[0]

@@ -118,8 +118,8 @@ def test_loaded_map_same_answers_each_submap_searched_once(maps, kind, tmp_path,
     assert assert_same_answers(Localizer(loaded), TwoSearchLocalizer(loaded), q, priors) >= 3
     calls: dict[str, list] = {"search": [], "pq": [], "rows": [], "pool": []}
     for s in loaded.submaps:
-        for name, key in (("search", "search"), ("pq_candidates", "pq"),
-                          ("exact_sq_l2", "rows")):
+        for name, key in (("search", "search"), ("searchable", "search"),
+                          ("pq_candidates", "pq"), ("exact_sq_l2", "rows")):
             orig = getattr(s, name)
 
             def spy(*a, _orig=orig, _key=key, _sid=s.id):
@@ -173,6 +173,54 @@ def test_pooled_small_submaps_give_each_submaps_own_distances(kind, monkeypatch)
         monkeypatch.setattr(search, "POOL_MAX_FP16_REFS", 1 + 5 + 17)
         assert search.SmallSubmaps(subs).pooled.tolist() == [True, True, False, False, False,
                                                              False, True]
+
+
+@pytest.mark.parametrize("kind", ["flat", "fp16"])
+def test_back_to_back_searches_are_each_indexs_own_search(kind):
+    """The pass's flat/fp16 searches called back to back give what each index's own search
+    gives (k below, at and — refused — above a submap's size; odd dims)."""
+    from vlm_vpr_ros.errors import MapError
+    from vlm_vpr_ros.maps.indexes import search as one_search, search_exact_many
+
+    rng = np.random.default_rng(9)
+    for dim in (12, 33, 128):
+        idx = [make_index(kind, rng.normal(size=(n, dim)).astype(np.float32))
+               for n in (1, 7, 300, 2000)]
+        q = rng.normal(size=(1, dim)).astype(np.float32)
+        ks = [1, 7, 50, 400]
+        got = search_exact_many(list(zip(idx, ks)), q)
+        for index, k, (d, r) in zip(idx, ks, got):
+            want_d, want_r = one_search(index, kind, None, q, k)
+            assert np.array_equal(d, want_d) and np.array_equal(r, want_r)
+            assert d.dtype == np.float32 and r.dtype == np.int64
+        with pytest.raises(MapError):
+            search_exact_many([(idx[1], 8)], q)
+        with pytest.raises(MapError):
+            search_exact_many([(idx[1], 3)], q[:, :-1])
+    assert search_exact_many([], q) == []
+
+
+@pytest.mark.parametrize("kind", ["flat", "fp16"])
+def test_without_the_pool_the_back_to_back_pass_answers_as_the_two_searches(kind,
+                                                                           monkeypatch):
+    """Every submap searched alone (no pool): the pass's back-to-back searches give the
+    answers of the pre-issue-23 two searches, and each live submap is searched once."""
+    from vlm_vpr_ros.maps import search
+
+    monkeypatch.setattr(search, "POOL_MAX_REFS", 0)
+    m, desc, copies = tied_map(kind, 1500, 12, seed=4)
+    assert not m.small_submaps().pooled.any()
+    rng = np.random.default_rng(10)
+    q, priors = queries_and_priors(desc, copies, rng, n=10)
+    for cfg in (dict(top_p=50), dict(top_p=400), dict(top_p=50, fusion="paper", n_submaps=3)):
+        config = LocalizerConfig(**cfg)
+        assert_same_answers(Localizer(m, config), TwoSearchLocalizer(m, config), q, priors)
+    calls: list[str] = []
+    for s in m.submaps:
+        orig = s.searchable
+        monkeypatch.setattr(s, "searchable", lambda _o=orig, _id=s.id: calls.append(_id) or _o())
+    Localizer(m).localize(q[0], priors[1])  # sigma 25 km: region + global merge
+    assert sorted(calls) == sorted(s.id for s in m.submaps if s.count)
 
 
 def test_rerank_distances_are_exact_float32_distances_to_the_fp16_vectors(monkeypatch):
@@ -232,6 +280,20 @@ def test_unique_ints_is_numpy_unique():
             a = rng.integers(0, hi, n, dtype=np.int64)
             assert np.array_equal(unique_ints(a), np.unique(a))
             assert unique_ints(a).dtype == np.int64
+
+
+def test_sorted_member_is_numpy_isin():
+    """The binary-search membership of the global merge and the re-rank equals ``np.isin``
+    against a sorted array (empty either side, repeats, keys beyond both ends)."""
+    from vlm_vpr_ros.maps.search import sorted_member
+
+    rng = np.random.default_rng(4)
+    for na in (0, 1, 5, 50, 800):
+        for nb in (0, 1, 3, 50, 800):
+            for hi in (4, 1000, 2 ** 50):
+                a = rng.integers(0, hi, na, dtype=np.int64)
+                b = np.sort(rng.integers(0, hi, nb, dtype=np.int64))
+                assert np.array_equal(sorted_member(a, b), np.isin(a, b)), (na, nb, hi)
 
 
 def test_one_faiss_thread_is_per_thread_and_restored(maps):

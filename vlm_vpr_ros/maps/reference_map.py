@@ -9,6 +9,7 @@ into memory (:mod:`vlm_vpr_ros.maps.v1`). Maps are built by :mod:`vlm_vpr_ros.ma
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import threading
@@ -119,17 +120,20 @@ class ReferenceMap:
         region + global merge, from one pass in which no submap is searched twice
         (:mod:`vlm_vpr_ros.maps.search`)."""
         small = self.small_submaps()
-        sweep = SubmapPass(self.submaps, q, k, self.rerank_factor, small)
-        dist, sub, row = sweep.rank_with_global(submaps) if with_global else \
-            sweep.rank(submaps)[0]
-        touched = unique_ints(sub).tolist()
-        advise = len(touched) > 1 and self.row_bytes(("coords", "ids")) >= PREFETCH_MIN_BYTES
-        for si in touched:  # the caller reads the hits' ids and positions next; a pooled
-            # submap's hits came from its copy in RAM: its index file is checked here too, so
-            # a submap changed on disk fails the queries it answers (maps/store.py)
-            self.submaps[si].check_files(POOLED_ROLES if small.pooled[si] else HIT_ROLES)
-            if advise:  # cold pages of several files: reads queued at once
-                self.submaps[si].prefetch(np.sort(row[sub == si]), ("coords", "ids"))
+        watch = getattr(self.submaps[0], "watch", None) if self.submaps else None
+        with watch.query() if watch is not None else contextlib.nullcontext():
+            sweep = SubmapPass(self.submaps, q, k, self.rerank_factor, small)
+            dist, sub, row = sweep.rank_with_global(submaps) if with_global else \
+                sweep.rank(submaps)[0]
+            touched = unique_ints(sub).tolist()
+            advise = (len(touched) > 1
+                      and self.row_bytes(("coords", "ids")) >= PREFETCH_MIN_BYTES)
+            for si in touched:  # the caller reads the hits' ids and positions next; a pooled
+                # submap's hits came from its copy in RAM: its index file is checked here too,
+                # so a submap changed on disk fails the queries it answers (maps/store.py)
+                self.submaps[si].check_files(POOLED_ROLES if small.pooled[si] else HIT_ROLES)
+                if advise:  # cold pages of several files: reads queued at once
+                    self.submaps[si].prefetch(np.sort(row[sub == si]), ("coords", "ids"))
         return dist, sub, row
 
     def row_bytes(self, roles: tuple[str, ...]) -> int:

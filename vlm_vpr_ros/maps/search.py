@@ -50,7 +50,7 @@ from typing import Any, Iterator, Sequence
 
 import numpy as np
 
-from vlm_vpr_ros.maps.indexes import make_index
+from vlm_vpr_ros.maps.indexes import make_index, search_exact_many
 
 #: ranked hits: (squared L2 float32, submap index int64, row int64), best first
 Hits = tuple[np.ndarray, np.ndarray, np.ndarray]
@@ -83,6 +83,16 @@ def unique_ints(a: np.ndarray) -> np.ndarray:
     first[0] = True
     np.not_equal(a[1:], a[:-1], out=first[1:])
     return a[first]
+
+
+def sorted_member(a: np.ndarray, sorted_b: np.ndarray) -> np.ndarray:
+    """``np.isin(a, sorted_b)`` for a sorted ``sorted_b`` by a binary search (numpy 2's
+    ``isin`` hashes or sorts both: 52 against 4 us for 50 keys on an AVX-512 EPYC)."""
+    if not len(sorted_b):
+        return np.zeros(len(a), dtype=bool)
+    at = np.searchsorted(sorted_b, a)
+    np.minimum(at, len(sorted_b) - 1, out=at)
+    return sorted_b[at] == a
 
 
 @contextlib.contextmanager
@@ -227,6 +237,7 @@ class SubmapPass:
         if len(members) and not self.small.pays(members):  # a few small submaps: alone
             plans = [(exact + pooled, pq, []) for exact, pq, pooled in plans]
         with one_faiss_thread():
+            self._search_exact([si for exact, _, _ in plans for si in exact])
             picks = [self._pick(pq) for _, pq, _ in plans]
             self._rerank(picks)
             parts = [self._gather(exact, pick, pooled)
@@ -243,7 +254,7 @@ class SubmapPass:
         lacks: ordered by distance, region first on ties (what the two searches and a stable
         merge of their candidates gave)."""
         (rd, rs, rr), (gd, gs, gr) = self.rank(region, range(len(self.subs)))
-        extra = ~np.isin(_key(gs, gr), _key(rs, rr))
+        extra = ~sorted_member(_key(gs, gr), np.sort(_key(rs, rr)))
         d = np.concatenate([rd, gd[extra]])
         order = np.argsort(d, kind="stable")
         return (d[order], np.concatenate([rs, gs[extra]])[order],
@@ -270,6 +281,16 @@ class SubmapPass:
             hit = self._exact[si] = (np.asarray(dist, np.float32), np.asarray(rows, np.int64))
         return hit
 
+    def _search_exact(self, sis: list[int]) -> None:
+        """The flat/fp16 submaps' searches of a pass, back to back
+        (:func:`~vlm_vpr_ros.maps.indexes.search_exact_many`; one submap: :meth:`_exact_hits`)."""
+        todo = [si for si in dict.fromkeys(sis) if si not in self._exact]
+        if len(todo) < 2:
+            return
+        found = [(self.subs[si].searchable(), min(self.k, self.subs[si].count)) for si in todo]
+        for si, hit in zip(todo, search_exact_many(found, self.q)):
+            self._exact[si] = hit
+
     def _candidates(self, si: int) -> tuple[np.ndarray, np.ndarray]:
         hit = self._stage1.get(si)
         if hit is None:
@@ -295,7 +316,7 @@ class SubmapPass:
         ascending); the reads of several submaps' cold pages are queued at once first."""
         keys = unique_ints(np.concatenate([_key(o, r) for o, r in picks]))
         if len(self._keys):
-            keys = keys[~np.isin(keys, self._keys)]
+            keys = keys[~sorted_member(keys, self._keys)]
         if not len(keys):
             return
         owner, rows = keys >> _ROW_BITS, keys & ((1 << _ROW_BITS) - 1)

@@ -21,7 +21,9 @@ cannot catch), so every search first ``stat``s the files it reads (the index, pq
 vectors; coords and ids of the submaps that hold hits, before they are read) and raises
 :class:`MapError` instead; a file whose modification or change time moved since the check is
 checked again, and a submap whose content changed under a running process is refused from then
-on (every query that needs it fails, flagged) until the map is reloaded. The full sha256 pass
+on (every query that needs it fails, flagged) until the map is reloaded. On a local file
+system the map's folders are watched (inotify, :mod:`vlm_vpr_ros.maps.watch`): a file is
+``stat``ed again only after the folder reported a change, or a second passed. The full sha256 pass
 is :func:`~vlm_vpr_ros.maps.format.verify_files` (``vlm-vpr map verify``, node parameter
 ``verify_map``).
 """
@@ -47,6 +49,7 @@ from vlm_vpr_ros.maps.format import (DOCUMENT_KEYS, MANIFEST, MAP_FORMAT, METRIC
                                      check_ref_id, checked_file, content_error, content_matches,
                                      file_table, load_state, verify_files)
 from vlm_vpr_ros.maps.submap import submap_radius_km
+from vlm_vpr_ros.maps.watch import FolderWatch
 
 log = logging.getLogger(__name__)
 
@@ -142,7 +145,7 @@ class IdView:
         return len(self._raw)
 
     def __getitem__(self, i: int) -> str:
-        return bytes(self._raw[i]).decode("utf-8", errors="replace")
+        return self._raw.item(i).decode("utf-8", errors="replace")  # bytes, NULs stripped
 
     def take(self, rows: Any) -> list[str]:
         """The ids of these rows (one read of the mapped array)."""
@@ -157,8 +160,12 @@ class IdView:
 class LazySubmap:
     """A v2 submap: metadata from the manifest; files opened (memory-mapped) on first use."""
 
-    def __init__(self, root: Path, entry: dict, dim: int, files_meta: dict) -> None:
+    def __init__(self, root: Path, entry: dict, dim: int, files_meta: dict,
+                 watch: FolderWatch | None = None) -> None:
         self.root, self.dim = root, dim
+        self.watch = watch  # the map's change notice (maps/watch.py); None: stat every time
+        self._ok_gen: dict[str, int] = {}  # file -> the watch generation of its last pass
+        self._ok_roles: dict[tuple[str, ...] | None, int] = {}  # the same per roles checked
         self.id: str = entry["id"]
         self.group: str = entry.get("group") or entry["id"]
         self.count: int = int(entry["count"])
@@ -175,7 +182,8 @@ class LazySubmap:
         self._seen: dict[str, tuple[int, int, int, int]] = {}
         self._inodes: dict[str, tuple[int, int]] = {}
         self._refused = ""  # why this submap is refused (content changed under us)
-        self._stat_paths: list[tuple[str, str, int, str]] | None = None  # role, rel, bytes, path
+        #: per ``roles`` of check_files: (rel, bytes, path) of the files it stats
+        self._stat_paths: dict[tuple[str, ...] | None, list[tuple[str, int, str]]] = {}
         self._prefetch_at: dict[str, tuple[str, int, int]] | None = None  # see prefetch()
         self._lock = threading.Lock()
         self._open: tuple[Any, np.ndarray, IdView, np.ndarray | None] | None = None
@@ -195,30 +203,45 @@ class LazySubmap:
         submap is then refused until the map is reloaded). For an open submap, a file replaced
         by another one (new inode, e.g. an atomic map update) is not an error: the mapping keeps
         the old file alive. ``roles``: only these files (index, vectors, coords, ids: what the
-        caller reads next); all by default."""
+        caller reads next); all by default. A file that passed in the map's current change
+        notice generation is not ``stat``ed again (:mod:`vlm_vpr_ros.maps.watch`)."""
         if self._refused:
             raise MapError(self._refused)
-        if self._stat_paths is None:  # joined once: a pathlib join per file and search cost
-            self._stat_paths = [(role, rel, self._sizes[rel], os.fspath(self.root / rel))
-                                for role, rel in self.files.items()]  # 6x the stat itself
-        for role, rel, size, path in self._stat_paths:
-            if roles is not None and role not in roles:
-                continue
-            try:
-                st = os.stat(path)
-            except OSError as exc:
-                if self._open is not None:
-                    continue  # unlinked: the mapping keeps the data alive
-                raise MapError(f"{self.root}: missing file {rel} ({exc.strerror})") from None
-            same_file = self._inodes.get(rel) in (None, (st.st_dev, st.st_ino))
-            if same_file and st.st_size != size:
-                when = "after the map was opened" if self._open is not None else ""
-                raise MapError(f"{self.root}: {rel} has {st.st_size} bytes, manifest says {size} "
-                               f"(truncated or modified {when}); reload or rebuild the map"
-                               .replace("  ", " ").replace(" )", ")"))
-            now = (st.st_dev, st.st_ino, st.st_mtime_ns, st.st_ctime_ns)
-            if same_file and self._seen.get(rel, now) != now:
-                self._recheck(rel, now)
+        gen = self.watch.current() if self.watch is not None else None
+        if gen is not None and self._ok_roles.get(roles) == gen:
+            return
+        paths = self._stat_paths.get(roles)
+        if paths is None:  # joined once per roles: a pathlib join per file and search cost 6x
+            paths = self._stat_paths[roles] = [  # the stat itself
+                (rel, self._sizes[rel], os.fspath(self.root / rel))
+                for role, rel in self.files.items() if roles is None or role in roles]
+        for rel, size, path in paths:
+            if gen is None or self._ok_gen.get(rel) != gen:
+                self._check_file(rel, size, path)
+                if gen is not None:
+                    self._ok_gen[rel] = gen
+        if gen is not None:
+            self._ok_roles[roles] = gen
+
+    def _check_file(self, rel: str, size: int, path: str) -> None:
+        try:
+            st = os.stat(path)
+        except OSError as exc:
+            if self._open is not None:
+                return  # unlinked: the mapping keeps the data alive
+            raise MapError(f"{self.root}: missing file {rel} ({exc.strerror})") from None
+        if (st.st_size == size and self._seen.get(rel)
+                == (st.st_dev, st.st_ino, st.st_mtime_ns, st.st_ctime_ns)):
+            return  # the file whose content was checked, untouched since (most calls)
+        same_file = self._inodes.get(rel) in (None, (st.st_dev, st.st_ino))
+        if same_file and st.st_size != size:
+            when = "after the map was opened" if self._open is not None else ""
+            raise MapError(f"{self.root}: {rel} has {st.st_size} bytes, manifest says {size} "
+                           f"(truncated or modified {when}); reload or rebuild the map"
+                           .replace("  ", " ").replace(" )", ")"))
+        now = (st.st_dev, st.st_ino, st.st_mtime_ns, st.st_ctime_ns)
+        if same_file and self._seen.get(rel, now) != now:
+            self._recheck(rel, now)
 
     def _recheck(self, rel: str, now: tuple[int, int, int, int]) -> None:
         """A file was written since its content was checked: check it again."""
@@ -313,6 +336,13 @@ class LazySubmap:
         index, _, _, rerank = self.opened()
         self.check_files(SEARCH_ROLES[self.kind])
         return indexes.search(index, self.kind, rerank, q, k, factor)
+
+    def searchable(self) -> Any:
+        """The FAISS index, its files checked as :meth:`search` checks them (for
+        :func:`~vlm_vpr_ros.maps.indexes.search_exact_many`)."""
+        index = self.opened()[0]
+        self.check_files(SEARCH_ROLES[self.kind])
+        return index
 
     def pq_candidates(self, q: np.ndarray, kk: int) -> tuple[np.ndarray, np.ndarray]:
         """Stage 1 of a pq search; checks the index and the vectors the re-rank reads next."""
@@ -424,7 +454,10 @@ def open_submaps(path: Path, manifest: dict, verify: bool
     ``verify`` checks the sha256 of every byte instead."""
     validate_entries(path, manifest)
     dim = int(manifest["descriptor"]["dim"])
-    subs = [LazySubmap(path, e, dim, manifest["files"]) for e in manifest["submaps"]]
+    # watched before the check: a change made during it is seen at the first search
+    watch = FolderWatch(sorted({(path / r).parent for e in manifest["submaps"]
+                                for r in e["files"].values()}))
+    subs = [LazySubmap(path, e, dim, manifest["files"], watch) for e in manifest["submaps"]]
     for s in subs:  # before the check: a change made during it is seen at the first search
         s.note_checked()
     rels = [r for e in manifest["submaps"] for r in e["files"].values()]

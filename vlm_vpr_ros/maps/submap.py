@@ -33,6 +33,9 @@ class Submap:
     def search(self, q: np.ndarray, k: int, factor: int) -> tuple[np.ndarray, np.ndarray]:
         return indexes.search(self.index, self.kind, self.rerank, q, k, factor)
 
+    def searchable(self) -> Any:
+        return self.index
+
     def pq_candidates(self, q: np.ndarray, kk: int) -> tuple[np.ndarray, np.ndarray]:
         return indexes.pq_candidates(self.index, q, kk)
 

@@ -122,19 +122,34 @@ def _grid_search_steps(q: float, lo: float, hi: float, below: float, miss_mass: 
     return hi
 
 
+def prior_weighted_background(background: tuple[np.ndarray, np.ndarray, np.ndarray],
+                              prior: tuple[float, float], error_model: ErrorModel
+                              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The miss component's support weighted by the prior's likelihood (what :func:`fuse`
+    does with ``background`` when there is a prior term): a function of the prior alone, so a
+    caller whose prior repeats (a fixed hint, a cached answer) computes it once and passes it
+    with ``background_weighted=True``."""
+    blat, blon, bw = (np.asarray(v, dtype=np.float64) for v in background)
+    lg = error_model.log_density(haversine_km(prior[0], prior[1], blat, blon))
+    return blat, blon, bw * np.exp(lg - np.max(lg))
+
+
 def fuse(l2_sq: np.ndarray, lat: np.ndarray, lon: np.ndarray, visual_scale: float,
          beta: float = 1.0, prior: tuple[float, float] | None = None,
          error_model: ErrorModel | None = None, use_prior_term: bool = True,
          vote_radius_m: float = 25.0, miss_prob: float = 0.05,
          background: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
-         fixed_best: int | None = None, prior_km: np.ndarray | None = None) -> Posterior:
+         fixed_best: int | None = None, prior_km: np.ndarray | None = None,
+         background_weighted: bool = False) -> Posterior:
     """Posterior, vote and raw radii for one query's candidates (arrays of equal length > 0).
 
     ``miss_prob``: probability that no candidate is the place (calibrated at build time, see
     :mod:`.calibration`). ``background``: (lat, lon, weight) of the map's mass (submap centroids
     and counts), the miss component's spread without a prior. ``fixed_best``: use this candidate
     as the estimate (the paper mode) instead of the vote. ``prior_km``: the candidates'
-    great-circle distances to the prior when the caller has them already."""
+    great-circle distances to the prior when the caller has them already.
+    ``background_weighted``: ``background`` is :func:`prior_weighted_background` of this prior
+    and model already."""
     d = np.asarray(l2_sq, dtype=np.float64)
     lat = np.asarray(lat, dtype=np.float64)
     lon = np.asarray(lon, dtype=np.float64)
@@ -167,10 +182,9 @@ def fuse(l2_sq: np.ndarray, lat: np.ndarray, lon: np.ndarray, visual_scale: floa
     miss = float(min(max(miss_prob, 0.0), 1.0))
     steps = None
     if background is not None and len(background[0]):
+        if has_prior and use_prior_term and not background_weighted:
+            background = prior_weighted_background(background, prior, error_model)
         blat, blon, bw = (np.asarray(v, dtype=np.float64) for v in background)
-        if has_prior and use_prior_term:  # mapped places, weighted by the prior's likelihood
-            lg = error_model.log_density(haversine_km(prior[0], prior[1], blat, blon))
-            bw = bw * np.exp(lg - np.max(lg))
         bd = np.atleast_1d(haversine_km(lat[best], lon[best], blat, blon))
         order = np.argsort(bd, kind="stable")
         bd = bd[order]
