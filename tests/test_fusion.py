@@ -362,45 +362,31 @@ def test_step_shortcut_gives_the_grid_search_bit_for_bit():
         assert got == want, (trial, got, want)
 
 
-def test_fuse_with_the_prior_distances_given_equals_fuse_computing_them():
-    """The paper mode hands fuse() the distances to the prior it already computed: the same
-    posterior, vote, estimate and radii."""
+def test_fuse_given_what_its_caller_computed_equals_fuse_computing_it():
+    """The paper mode hands fuse() the distances to the prior it already computed, and the
+    localizer the background weighted once per prior: the same posterior, vote, estimate and
+    radii as fuse() computing them itself."""
+    from vlm_vpr_ros.localization.fusion.posterior import prior_weighted_background
+
     rng = np.random.default_rng(3)
     lat, lon = 40 + rng.normal(0, 0.05, 50), -3.7 + rng.normal(0, 0.05, 50)
     l2 = np.sort(rng.uniform(0.5, 1.5, 50))
     bg = (40 + rng.normal(0, 2, 300), -3.7 + rng.normal(0, 2, 300), rng.uniform(1, 9, 300))
-    model = ErrorModel((5.0, 300.0), (0.6, 0.39), 0.01)
     prior = (40.01, -3.69)
     g = haversine_km(prior[0], prior[1], lat, lon)
-    for fixed in (None, 3):
-        a = fuse(l2, lat, lon, 0.2, prior=prior, error_model=model, background=bg,
-                 fixed_best=fixed)
-        b = fuse(l2, lat, lon, 0.2, prior=prior, error_model=model, background=bg,
-                 fixed_best=fixed, prior_km=g)
-        assert np.array_equal(a.weights, b.weights) and np.array_equal(a.votes, b.votes)
-        assert (a.best, a.r68_m, a.r95_m) == (b.best, b.r68_m, b.r95_m)
-        assert np.array_equal(a.extra["prior_km"], b.extra["prior_km"])
-
-
-def test_prior_weighted_background_given_equals_fuse_weighting_it():
-    """The localizer weights the background once per prior and hands it to fuse(): the same
-    posterior, vote, estimate and radii as fuse() weighting it itself."""
-    from vlm_vpr_ros.localization.fusion.posterior import prior_weighted_background
-
-    rng = np.random.default_rng(5)
-    lat, lon = 40 + rng.normal(0, 0.05, 50), -3.7 + rng.normal(0, 0.05, 50)
-    l2 = np.sort(rng.uniform(0.5, 1.5, 50))
-    bg = (40 + rng.normal(0, 2, 300), -3.7 + rng.normal(0, 2, 300), rng.uniform(1, 9, 300))
-    prior = (40.01, -3.69)
     for model in (ErrorModel((5.0, 300.0), (0.6, 0.39), 0.01), MODEL):
-        weighted = prior_weighted_background(bg, prior, model)
+        given = (dict(prior_km=g), dict(background=prior_weighted_background(bg, prior, model),
+                                        background_weighted=True))
         for fixed in (None, 3):
             a = fuse(l2, lat, lon, 0.2, prior=prior, error_model=model, background=bg,
                      fixed_best=fixed)
-            b = fuse(l2, lat, lon, 0.2, prior=prior, error_model=model, background=weighted,
-                     fixed_best=fixed, background_weighted=True)
-            assert np.array_equal(a.weights, b.weights) and np.array_equal(a.votes, b.votes)
-            assert (a.best, a.r68_m, a.r95_m) == (b.best, b.r68_m, b.r95_m)
+            for extra in given:
+                b = fuse(l2, lat, lon, 0.2, **{"prior": prior, "error_model": model,
+                                               "background": bg, "fixed_best": fixed, **extra})
+                assert np.array_equal(a.weights, b.weights)
+                assert np.array_equal(a.votes, b.votes)
+                assert (a.best, a.r68_m, a.r95_m) == (b.best, b.r68_m, b.r95_m)
+                assert np.array_equal(a.extra["prior_km"], b.extra["prior_km"])
 
 
 def test_a_repeated_prior_gets_the_same_submaps_and_answer_as_a_new_localizer():
