@@ -550,7 +550,7 @@ def test_localizer_start_opens_no_submap_and_many_pq_submaps_merge_like_one_inde
 
 
 def test_prefetch_rows_is_advice_only_and_scattered_rows_are_read_exactly(tmp_path):
-    from vlm_vpr_ros.maps.store import npy_data_offset, prefetch_rows
+    from vlm_vpr_ros.maps.mapped import npy_data_offset, prefetch_rows
 
     arr = np.arange(4000, dtype=np.float32).reshape(1000, 4)
     np.save(tmp_path / "a.npy", arr)

@@ -36,7 +36,7 @@ from vlm_vpr_ros.localization.fusion.posterior import fuse, prior_weighted_backg
 from vlm_vpr_ros.geodesy import MAX_DISTANCE_KM, haversine_km, valid_latlon
 from vlm_vpr_ros.maps.reference_map import ReferenceMap
 from vlm_vpr_ros.maps.search import unique_ints
-from vlm_vpr_ros.maps.store import IdView
+from vlm_vpr_ros.maps.mapped import IdView
 from vlm_vpr_ros.maps.submap import submap_radius_km
 from vlm_vpr_ros.maps.partition import country_codes, nearest_centroids
 from vlm_vpr_ros.priors.provider import Prior, PriorResult

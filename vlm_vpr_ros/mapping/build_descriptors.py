@@ -33,8 +33,8 @@ from vlm_vpr_ros.maps.format import MANIFEST, MAP_FORMAT, METRIC, content_matche
 from vlm_vpr_ros.maps.partition import make_partition
 from vlm_vpr_ros.maps.reference_map import ReferenceMap, Submap
 from vlm_vpr_ros.maps.sources import CHUNK, DescriptorSource, descriptor_identity, open_source
-from vlm_vpr_ros.maps.store import (VERSION, encode_ids, file_table, pq_name, prefetch_rows,
-                                    write_submap)
+from vlm_vpr_ros.maps.mapped import prefetch_rows
+from vlm_vpr_ros.maps.store import VERSION, encode_ids, file_table, pq_name, write_submap
 from vlm_vpr_ros.files.outputs import StagedOutput, written_by_us
 
 log = logging.getLogger(__name__)

@@ -44,7 +44,7 @@ from vlm_vpr_ros.errors import MapError
 from vlm_vpr_ros.files.atomic import atomic_write_json
 from vlm_vpr_ros.maps.format import (MANIFEST, check_content, content_error, content_matches,
                                      file_table)
-from vlm_vpr_ros.maps.store import _load_array
+from vlm_vpr_ros.maps.mapped import load_array
 from vlm_vpr_ros.types import LocalFeatures
 
 log = logging.getLogger(__name__)
@@ -238,9 +238,9 @@ class _SubmapFeatures:
                 if self._arrays is None:
                     self.check()
                     f = self.files
-                    rows = _load_array(self.root, f["rows"], (self.count, 4), "i8")
-                    kp = _load_array(self.root, f["keypoints"], (self.total, 2), "f2")
-                    de = _load_array(self.root, f["descriptors"], (self.total, self.dim),
+                    rows = load_array(self.root, f["rows"], (self.count, 4), "i8")
+                    kp = load_array(self.root, f["keypoints"], (self.total, 2), "f2")
+                    de = load_array(self.root, f["descriptors"], (self.total, self.dim),
                                      self.dtype.str.lstrip("<>|="))
                     if self.count and (int(rows[:, 1].sum()) != self.total
                                        or rows[:, 0].min() < 0 or rows[:, 1].min() < 0

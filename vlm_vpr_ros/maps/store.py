@@ -32,11 +32,10 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import mmap
 import os
 import threading
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import numpy as np
 
@@ -48,6 +47,7 @@ from vlm_vpr_ros.maps import indexes
 from vlm_vpr_ros.maps.format import (DOCUMENT_KEYS, MANIFEST, MAP_FORMAT, METRIC, check_content,
                                      check_ref_id, checked_file, content_error, content_matches,
                                      file_table, load_state, verify_files)
+from vlm_vpr_ros.maps.mapped import IdView, load_array, prefetch_rows
 from vlm_vpr_ros.maps.submap import submap_radius_km
 from vlm_vpr_ros.maps.watch import FolderWatch
 
@@ -135,28 +135,6 @@ def pq_name(dim: int) -> str:
 
 
 # -- reading ----------------------------------------------------------------------------------
-class IdView:
-    """Read-only sequence of str over a memory-mapped fixed-width UTF-8 array."""
-
-    def __init__(self, raw: np.ndarray) -> None:
-        self._raw = raw
-
-    def __len__(self) -> int:
-        return len(self._raw)
-
-    def __getitem__(self, i: int) -> str:
-        return self._raw.item(i).decode("utf-8", errors="replace")  # bytes, NULs stripped
-
-    def take(self, rows: Any) -> list[str]:
-        """The ids of these rows (one read of the mapped array)."""
-        return [b.decode("utf-8", errors="replace") for b in self._raw[rows].tolist()]
-
-    def __iter__(self) -> Iterator[str]:
-        for start in range(0, len(self._raw), 65536):
-            for b in self._raw[start:start + 65536].tolist():
-                yield b.decode("utf-8", errors="replace")
-
-
 class LazySubmap:
     """A v2 submap: metadata from the manifest; files opened (memory-mapped) on first use."""
 
@@ -279,11 +257,11 @@ class LazySubmap:
             raise MapError(f"{root}: submap {sid} index holds {index.ntotal} vectors, manifest "
                            f"says {self.count}")
         coords = self._map_coords()
-        raw = _load_array(root, self.files["ids"], (self.count,), "S")
+        raw = load_array(root, self.files["ids"], (self.count,), "S")
         _check_ids(root, self.files["ids"], raw)
         rerank = None
         if self.kind == "pq":
-            rerank = _load_array(root, self.files["vectors"], (self.count, self.dim), "f2")
+            rerank = load_array(root, self.files["vectors"], (self.count, self.dim), "f2")
         for rel in self.files.values():
             st = os.stat(root / rel)
             self._inodes[rel] = (st.st_dev, st.st_ino)
@@ -306,7 +284,7 @@ class LazySubmap:
 
     def _map_coords(self) -> np.ndarray:
         if self._coords is None:
-            coords = _load_array(self.root, self.files["coords"], (self.count, 2), "f8")
+            coords = load_array(self.root, self.files["coords"], (self.count, 2), "f8")
             if self.count and not np.all(np.isfinite(coords[: min(self.count, 4096)])):
                 raise MapError(f"{self.root}: submap {self.id} coordinates are not finite")
             self._coords = coords
@@ -372,52 +350,6 @@ class LazySubmap:
         index, _, _, rerank = self.opened()
         self.check_files()
         return indexes.vectors(index, self.kind, rerank)
-
-
-def _load_array(root: Path, rel: str, shape: tuple[int, ...], kind: str) -> np.ndarray:
-    """A memory-mapped ``.npy`` of the expected shape and dtype kind."""
-    try:
-        arr = np.load(root / rel, mmap_mode="r", allow_pickle=False)
-    except (OSError, ValueError) as exc:
-        raise MapError(f"{root}: cannot read {rel}: {exc}") from exc
-    if isinstance(arr, np.memmap):
-        mm = getattr(arr, "_mmap", None)
-        if mm is not None and hasattr(mmap, "MADV_RANDOM"):
-            # rows are read a few at a time: no read-ahead, or every query maps ~32 pages per
-            # row and the file-backed RSS grows towards the whole file
-            mm.madvise(mmap.MADV_RANDOM)
-        arr = arr.view(np.ndarray)  # same mapping, without np.memmap's per-item overhead
-    ok = arr.shape == shape and (arr.dtype.kind == "S" if kind == "S"
-                                 else arr.dtype == np.dtype(kind))
-    if not ok:
-        raise MapError(f"{root}: {rel} is {arr.dtype}{arr.shape}, expected {kind}{shape}")
-    return arr
-
-
-def prefetch_rows(path: Path | str, row_bytes: int, rows: np.ndarray, offset: int) -> None:
-    """Ask the kernel to read rows ``rows`` (``row_bytes`` each, data at ``offset``) of the file
-    at ``path`` now: ``posix_fadvise(WILLNEED)`` per row queues the reads without waiting, so a
-    cold query then waits for about one round of disk reads, not one read per page fault in
-    turn (measured here: 0.06 ms instead of 0.8 ms per cold row). Advice only: never fails."""
-    if not len(rows) or not hasattr(os, "posix_fadvise"):
-        return
-    try:
-        fd = os.open(path, os.O_RDONLY)
-    except OSError:
-        return  # the read itself reports a missing file
-    try:
-        for r in np.unique(np.asarray(rows, dtype=np.int64)).tolist():
-            os.posix_fadvise(fd, offset + r * row_bytes, row_bytes, os.POSIX_FADV_WILLNEED)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
-
-
-def npy_data_offset(path: Path, arr: np.ndarray) -> int:
-    """Where the data of a ``.npy`` this package wrote starts (header first, data to the end;
-    sizes are checked against the manifest before any read)."""
-    return os.stat(path).st_size - arr.nbytes
 
 
 def validate_entries(path: Path, manifest: dict) -> None:
