@@ -136,9 +136,7 @@ def search(index: Any, kind: str, rerank: np.ndarray | None, q: np.ndarray, k: i
     if k <= 0:
         return np.zeros(0, np.float32), np.zeros(0, np.int64)
     if kind != "pq":
-        dist, idx = index.search(q, k)
-        keep = idx[0] >= 0
-        return dist[0][keep], idx[0][keep]
+        return search_exact_many([(index, k)], q)[0]
     rows = np.sort(pq_candidates(index, q, k * max(1, int(factor)))[1])
     dist = exact_sq_l2(rerank, rows, q)
     order = np.argsort(dist, kind="stable")[:k]
@@ -147,13 +145,13 @@ def search(index: Any, kind: str, rerank: np.ndarray | None, q: np.ndarray, k: i
 
 def search_exact_many(found: Sequence[tuple[Any, int]], q: np.ndarray
                       ) -> list[tuple[np.ndarray, np.ndarray]]:
-    """:func:`search` of one (1, dim) float32 query in several flat/fp16 indexes, each with its
-    own ``k`` (1 <= k <= its size): the same FAISS search, called back to back with everything
-    else done before or after (issue 31: each call scans MBs of vectors and leaves the caches
-    cold, so the Python between two scans — FAISS's argument checks, output arrays, the hits'
-    mask, the file guard — cost tens of us per submap in a posterior query on a 230-submap
-    map, a few us warm; back to back, that query went from 1.20 to 1.17x one global search in
-    the same interleaved run, with the same hits)."""
+    """The exact search of one (1, dim) float32 query in one or several flat/fp16 indexes,
+    each with its own ``k`` (1 <= k <= its size): FAISS's search, called back to back with
+    everything else done before or after (issue 31: each call scans MBs of vectors and leaves
+    the caches cold, so the Python between two scans — FAISS's argument checks, output arrays,
+    the hits' mask, the file guard — cost tens of us per submap in a posterior query on a
+    230-submap map, a few us warm; back to back, that query went from 1.20 to 1.17x one global
+    search in the same interleaved run, with the same hits)."""
     import faiss
 
     if not found:

@@ -272,20 +272,11 @@ class SubmapPass:
         pooled = self.facts.pooled[rest]
         return rest[~pooled].tolist(), idx[pq].tolist(), rest[pooled].tolist()
 
-    def _exact_hits(self, si: int) -> tuple[np.ndarray, np.ndarray]:
-        """A flat/fp16 submap's top-``min(k, count)`` (FAISS's exact search)."""
-        hit = self._exact.get(si)
-        if hit is None:
-            sub = self.subs[si]
-            dist, rows = sub.search(self.q, min(self.k, sub.count), self.factor)
-            hit = self._exact[si] = (np.asarray(dist, np.float32), np.asarray(rows, np.int64))
-        return hit
-
     def _search_exact(self, sis: list[int]) -> None:
-        """The flat/fp16 submaps' searches of a pass, back to back
-        (:func:`~vlm_vpr_ros.maps.indexes.search_exact_many`; one submap: :meth:`_exact_hits`)."""
+        """The top-``min(k, count)`` of the pass's flat/fp16 submaps (FAISS's exact search),
+        back to back (:func:`~vlm_vpr_ros.maps.indexes.search_exact_many`)."""
         todo = [si for si in dict.fromkeys(sis) if si not in self._exact]
-        if len(todo) < 2:
+        if not todo:
             return
         found = [(self.subs[si].searchable(), min(self.k, self.subs[si].count)) for si in todo]
         for si, hit in zip(todo, search_exact_many(found, self.q)):
@@ -338,7 +329,7 @@ class SubmapPass:
     def _gather(self, exact: list[int], pick: tuple[np.ndarray, np.ndarray],
                 pooled: list[int]) -> tuple[Hits, list[int]]:
         """(hits of a set's submaps searched alone and of its pq pool, its pooled submaps)."""
-        hits = [self._exact_hits(si) for si in exact]
+        hits = [self._exact[si] for si in exact]  # searched by _search_exact
         owner, rows = pick
         pq_dist = self._dist[np.searchsorted(self._keys, _key(owner, rows))]
         dist = np.concatenate([d for d, _ in hits] + [pq_dist])

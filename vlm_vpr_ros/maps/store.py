@@ -142,8 +142,8 @@ class LazySubmap:
                  watch: FolderWatch | None = None) -> None:
         self.root, self.dim = root, dim
         self.watch = watch  # the map's change notice (maps/watch.py); None: stat every time
-        self._ok_gen: dict[str, int] = {}  # file -> the watch generation of its last pass
-        self._ok_roles: dict[tuple[str, ...] | None, int] = {}  # the same per roles checked
+        #: per ``roles`` of check_files: the watch generation in which they last passed
+        self._ok_roles: dict[tuple[str, ...] | None, int] = {}
         self.id: str = entry["id"]
         self.group: str = entry.get("group") or entry["id"]
         self.count: int = int(entry["count"])
@@ -181,8 +181,8 @@ class LazySubmap:
         submap is then refused until the map is reloaded). For an open submap, a file replaced
         by another one (new inode, e.g. an atomic map update) is not an error: the mapping keeps
         the old file alive. ``roles``: only these files (index, vectors, coords, ids: what the
-        caller reads next); all by default. A file that passed in the map's current change
-        notice generation is not ``stat``ed again (:mod:`vlm_vpr_ros.maps.watch`)."""
+        caller reads next); all by default. Files whose ``roles`` passed in the map's current
+        change notice generation are not ``stat``ed again (:mod:`vlm_vpr_ros.maps.watch`)."""
         if self._refused:
             raise MapError(self._refused)
         gen = self.watch.current() if self.watch is not None else None
@@ -194,10 +194,7 @@ class LazySubmap:
                 (rel, self._sizes[rel], os.fspath(self.root / rel))
                 for role, rel in self.files.items() if roles is None or role in roles]
         for rel, size, path in paths:
-            if gen is None or self._ok_gen.get(rel) != gen:
-                self._check_file(rel, size, path)
-                if gen is not None:
-                    self._ok_gen[rel] = gen
+            self._check_file(rel, size, path)
         if gen is not None:
             self._ok_roles[roles] = gen
 
@@ -311,22 +308,22 @@ class LazySubmap:
         """Top-``k`` (squared L2, row). Checks the files the search reads (the index; pq: and
         the re-rank vectors); the caller checks coords and ids before reading the hits' rows
         (``ReferenceMap.search_submaps``): one stat per flat submap and query, not three."""
-        index, _, _, rerank = self.opened()
-        self.check_files(SEARCH_ROLES[self.kind])
-        return indexes.search(index, self.kind, rerank, q, k, factor)
+        return indexes.search(self._checked_index(), self.kind, self.opened()[3], q, k, factor)
 
     def searchable(self) -> Any:
         """The FAISS index, its files checked as :meth:`search` checks them (for
         :func:`~vlm_vpr_ros.maps.indexes.search_exact_many`)."""
+        return self._checked_index()
+
+    def _checked_index(self) -> Any:
+        """The FAISS index, after a check of the files a search of this kind reads."""
         index = self.opened()[0]
         self.check_files(SEARCH_ROLES[self.kind])
         return index
 
     def pq_candidates(self, q: np.ndarray, kk: int) -> tuple[np.ndarray, np.ndarray]:
         """Stage 1 of a pq search; checks the index and the vectors the re-rank reads next."""
-        index = self.opened()[0]
-        self.check_files(SEARCH_ROLES["pq"])
-        return indexes.pq_candidates(index, q, kk)
+        return indexes.pq_candidates(self._checked_index(), q, kk)
 
     def exact_sq_l2(self, rows: np.ndarray, q: np.ndarray) -> np.ndarray:
         return indexes.exact_sq_l2(self.opened()[3], rows, q)
