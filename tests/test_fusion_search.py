@@ -154,7 +154,8 @@ def test_pooled_small_submaps_give_each_submaps_own_distances(kind, monkeypatch)
     for dim in (8, 12, 33, 128):
         subs = [Submap(f"s{i}", (0.0, 0.0), np.zeros((n, 2)), [f"r{j}" for j in range(n)],
                        make_index(kind, rng.normal(size=(n, dim)).astype(np.float32)),
-                       kind=kind) for i, n in enumerate([1, 5, 40, 1500, 256, 0, 17])]
+                       kind=kind)
+                for i, n in enumerate([1, 5, 40, search.POOL_MAX_REFS + 1, 256, 0, 17])]
         small = search.SmallSubmaps(subs)
         assert small.pooled.tolist() == [True, True, True, False, True, False, True]
         q = rng.normal(size=(1, dim)).astype(np.float32)
@@ -175,6 +176,60 @@ def test_pooled_small_submaps_give_each_submaps_own_distances(kind, monkeypatch)
                                                              False, True]
 
 
+def test_pooled_flat_rows_in_huge_pages_search_as_an_index():
+    """The flat pool's rows live in huge-page memory (2 MiB aligned, advised ``hg`` where the
+    kernel has the advice) and are range-searched with the kernel of ``IndexFlatL2``: the same
+    distances and rows as an index over the same rows, at the radius boundary too; a pool of
+    several MB equals each submap's own search."""
+    import mmap
+
+    from vlm_vpr_ros.errors import MapError
+    from vlm_vpr_ros.maps import search
+    from vlm_vpr_ros.maps.indexes import range_search_rows
+    from vlm_vpr_ros.maps.mapped import HUGE_PAGE_BYTES, huge_page_array
+
+    small_arr = huge_page_array((3, 4), np.float32)  # under one huge page: plain memory
+    assert small_arr.shape == (3, 4) and not small_arr.any()
+    rng = np.random.default_rng(12)
+    dim, sizes = 128, [900, 1000, 1100, 1200, 800]  # 20 MB of float32 rows
+    subs = [Submap(f"s{i}", (0.0, 0.0), np.zeros((n, 2)), [f"r{j}" for j in range(n)],
+                   make_index("flat", rng.normal(size=(n, dim)).astype(np.float32)))
+            for i, n in enumerate(sizes)]
+    pool = search.SmallSubmaps(subs)
+    (kind, rows, owner, row), = pool.parts
+    assert kind == "flat" and rows.dtype == np.float32 and rows.shape == (sum(sizes), dim)
+    assert rows.flags.c_contiguous and rows.flags.writeable
+    if hasattr(mmap, "MADV_HUGEPAGE"):
+        assert rows.ctypes.data % HUGE_PAGE_BYTES == 0
+        start = rows.ctypes.data
+        with open("/proc/self/smaps") as f:
+            vmas = f.read().split("\n")
+        for i, line in enumerate(vmas):  # the mapping holding the rows is advised "hg"
+            lo, _, hi = line.partition(" ")[0].partition("-")
+            if hi and all(c in "0123456789abcdef" for c in lo + hi) \
+                    and int(lo, 16) <= start < int(hi, 16):
+                flags = next(v for v in vmas[i:] if v.startswith("VmFlags:"))
+                assert " hg" in flags
+                break
+        else:
+            pytest.fail("the pool's mapping is not in /proc/self/smaps")
+    index = make_index("flat", rows)
+    q = rng.normal(size=(1, dim)).astype(np.float32)
+    _, all_d, _ = index.range_search(q, np.float32(np.inf))
+    radius = float(np.sort(all_d)[40])  # a distance that occurs: the boundary is exclusive
+    _, want_d, want_r = index.range_search(q, radius)
+    got_d, got_r = range_search_rows(rows, q, radius)
+    assert np.array_equal(got_d, want_d) and np.array_equal(got_r, want_r) and len(got_r) == 40
+    d, s, r = pool.hits(q)
+    for si, sub in enumerate(subs):
+        want_d, want_r = sub.search(q, sub.count, 1)
+        assert dict(zip(r[s == si].tolist(), d[s == si].tolist())) == dict(
+            zip(want_r.tolist(), want_d.tolist()))
+    for bad in (rows.astype(np.float64), rows[:, :-1], np.asfortranarray(rows[:100])):
+        with pytest.raises(MapError):
+            range_search_rows(bad, q, radius)
+
+
 @pytest.mark.parametrize("kind", ["flat", "fp16"])
 def test_back_to_back_searches_are_each_indexs_own_search(kind):
     """The pass's flat/fp16 searches called back to back give what each index's own FAISS
@@ -188,16 +243,20 @@ def test_back_to_back_searches_are_each_indexs_own_search(kind):
                for n in (1, 7, 300, 2000)]
         q = rng.normal(size=(1, dim)).astype(np.float32)
         ks = [1, 7, 50, 400]
-        got = search_exact_many(list(zip(idx, ks)), q)
-        for index, k, (d, r) in zip(idx, ks, got):
+        dist, at, rows = search_exact_many(list(zip(idx, ks)), q)
+        assert np.array_equal(at, np.repeat(np.arange(len(idx)), ks))  # in found's order
+        for i, (index, k) in enumerate(zip(idx, ks)):
+            d, r = dist[at == i], rows[at == i]
             want_d, want_r = index.search(q, k)  # FAISS's own Python search
             assert np.array_equal(d, want_d[0]) and np.array_equal(r, want_r[0])
             assert d.dtype == np.float32 and r.dtype == np.int64
+        nan = search_exact_many(list(zip(idx, ks)), np.full((1, dim), np.nan, np.float32))
+        assert all(len(a) == 0 for a in nan)  # no distance enters FAISS's heap: no hits
         with pytest.raises(MapError):
             search_exact_many([(idx[1], 8)], q)
         with pytest.raises(MapError):
             search_exact_many([(idx[1], 3)], q[:, :-1])
-    assert search_exact_many([], q) == []
+    assert all(len(a) == 0 for a in search_exact_many([], q))
 
 
 @pytest.mark.parametrize("kind", ["flat", "fp16"])

@@ -136,7 +136,8 @@ def search(index: Any, kind: str, rerank: np.ndarray | None, q: np.ndarray, k: i
     if k <= 0:
         return np.zeros(0, np.float32), np.zeros(0, np.int64)
     if kind != "pq":
-        return search_exact_many([(index, k)], q)[0]
+        dist, _, rows = search_exact_many([(index, k)], q)
+        return dist, rows
     rows = np.sort(pq_candidates(index, q, k * max(1, int(factor)))[1])
     dist = exact_sq_l2(rerank, rows, q)
     order = np.argsort(dist, kind="stable")[:k]
@@ -144,37 +145,55 @@ def search(index: Any, kind: str, rerank: np.ndarray | None, q: np.ndarray, k: i
 
 
 def search_exact_many(found: Sequence[tuple[Any, int]], q: np.ndarray
-                      ) -> list[tuple[np.ndarray, np.ndarray]]:
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The exact search of one (1, dim) float32 query in one or several flat/fp16 indexes,
-    each with its own ``k`` (1 <= k <= its size): FAISS's search, called back to back with
-    everything else done before or after (issue 31: each call scans MBs of vectors and leaves
-    the caches cold, so the Python between two scans — FAISS's argument checks, output arrays,
-    the hits' mask, the file guard — cost tens of us per submap in a posterior query on a
-    230-submap map, a few us warm; back to back, that query went from 1.20 to 1.17x one global
-    search in the same interleaved run, with the same hits)."""
+    each with its own ``k`` (1 <= k <= its size), as (squared L2 float32, position of the index
+    in ``found``, row) of every hit, each index's hits best first, indexes in ``found``'s order.
+    FAISS's search, called back to back with everything else done before or after (issue 31:
+    each call scans MBs of vectors and leaves the caches cold, so the Python between two scans —
+    FAISS's argument checks, output arrays, the hits' mask, the file guard — cost tens of us per
+    submap in a posterior query on a 230-submap map, a few us warm; back to back, that query
+    went from 1.20 to 1.17x one global search in the same interleaved run, with the same hits;
+    one array of hits, not one per index: fewer numpy calls after the scans)."""
     import faiss
 
-    if not found:
-        return []
     q = np.ascontiguousarray(q, dtype=np.float32).reshape(1, -1)
     for index, k in found:
         if index.d != q.shape[1] or not 0 < k <= index.ntotal:
             raise MapError(f"search of {k} of {index.ntotal} {index.d}-D vectors with a "
                            f"{q.shape[1]}-D query")
-    width = max(k for _, k in found)
+    width = max((k for _, k in found), default=0)
     dist = np.empty((len(found), width), np.float32)
-    rows = np.empty((len(found), width), np.int64)
+    rows = np.full((len(found), width), -1, np.int64)  # beyond an index's k: no hit
     qp = faiss.swig_ptr(q)
     calls = [(index.search_c, k, faiss.swig_ptr(dist[i]), faiss.swig_ptr(rows[i]))
              for i, (index, k) in enumerate(found)]
     for call, k, dp, rp in calls:
         call(1, qp, k, dp, rp, None)
-    out = []
-    for i, (_, k) in enumerate(found):
-        d, r = dist[i, :k], rows[i, :k]
-        keep = r >= 0
-        out.append((d[keep], r[keep]))
-    return out
+    keep = (rows >= 0).ravel()  # FAISS leaves -1 where no distance entered its heap (NaN)
+    which = np.repeat(np.arange(len(found), dtype=np.int64), width)
+    return dist.ravel()[keep], which[keep], rows.ravel()[keep]
+
+
+def range_search_rows(rows: np.ndarray, q: np.ndarray, radius: float
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """(squared L2, row) of the float32 ``rows`` (n, dim) whose distance to the (1, dim) query
+    is below ``radius``: the kernel of ``IndexFlatL2.range_search`` (``range_search_L2sqr``,
+    the same distances) run on the caller's array, where an index would scan its own copy (an
+    index's heap copy cannot be put in huge-page memory: :func:`.mapped.huge_page_array`)."""
+    import faiss
+
+    q = np.ascontiguousarray(q, dtype=np.float32).reshape(1, -1)
+    if rows.dtype != np.float32 or rows.ndim != 2 or rows.shape[1] != q.shape[1] \
+            or not rows.flags.c_contiguous:
+        raise MapError(f"range search of {rows.dtype}{rows.shape} rows with a "
+                       f"{q.shape[1]}-D query")
+    res = faiss.RangeSearchResult(1)
+    faiss.range_search_L2sqr(faiss.swig_ptr(q), faiss.swig_ptr(rows), q.shape[1], 1,
+                             len(rows), float(radius), res)
+    found = int(faiss.rev_swig_ptr(res.lims, 2)[1])
+    return (faiss.rev_swig_ptr(res.distances, found).copy(),
+            faiss.rev_swig_ptr(res.labels, found).copy())
 
 
 def pq_candidates(index: Any, q: np.ndarray, kk: int) -> tuple[np.ndarray, np.ndarray]:

@@ -21,7 +21,8 @@ Merging is numpy, not one Python tuple per hit. A country partition has hundreds
 submaps (215 of the 230 of the 100k MP-16 map hold <= 1,024 references, 24 % of them), and a
 FAISS call per small submap costs more than its scan: :class:`SmallSubmaps` keeps a copy of
 the small flat/fp16 submaps (<= ``POOL_MAX_REFS`` references each, at most ``POOL_MAX_BYTES``:
-49 MB on that map at 512-D, 24 MB at 256-D) in one index per kind, scanned with one call that
+49 MB on that map at 512-D, 24 MB at 256-D; flat rows in huge pages, which a scan reads 1.5x
+faster than an index's own copy, issue 31), scanned with one call per kind that
 returns the rows within the k-th distance the pass has already found elsewhere (all rows when
 it has none) — the same distances as each submap's own search (same FAISS kernel; checked in
 tests/test_fusion_search.py). Taking those rows instead of each small submap's
@@ -50,14 +51,15 @@ from typing import Any, Iterator, Sequence
 
 import numpy as np
 
-from vlm_vpr_ros.maps.indexes import make_index, search_exact_many
+from vlm_vpr_ros.maps.indexes import make_index, range_search_rows, search_exact_many
+from vlm_vpr_ros.maps.mapped import huge_page_array
 
 #: ranked hits: (squared L2 float32, submap index int64, row int64), best first
 Hits = tuple[np.ndarray, np.ndarray, np.ndarray]
 
 _ROW_BITS = 40  # (submap, row) packed in one int64 key: rows < 2**40, submaps < 2**23
 #: submaps of at most this many references are scanned together (module docstring)
-POOL_MAX_REFS = 1024
+POOL_MAX_REFS = 4096
 POOL_MAX_BYTES = 64 * 2 ** 20  # the pooled copy's size limit (smallest submaps first)
 POOL_MAX_FP16_REFS = 8192  # fp16 is searched for all its rows: a heap that grows with them
 #: a FAISS call's fixed cost in bytes scanned (~25 us at ~10 GB/s): a query that needs a few
@@ -139,8 +141,10 @@ def _dim_of(sub: Any) -> int:
 
 
 class SmallSubmaps:
-    """The small flat/fp16 submaps of a submap list, copied into one FAISS index per kind
-    (``pool=False``: none; the facts a pass plans with only)."""
+    """The small flat/fp16 submaps of a submap list, copied together: flat rows into one
+    float32 array in huge-page memory (:func:`~vlm_vpr_ros.maps.mapped.huge_page_array`, scanned
+    by FAISS's flat kernel), fp16 into one FAISS index (``pool=False``: none; the facts a pass
+    plans with only)."""
 
     def __init__(self, submaps: Sequence[Any], pool: bool = True) -> None:
         self.source = tuple(map(id, submaps))
@@ -155,9 +159,8 @@ class SmallSubmaps:
             self.row_bytes = np.array([_dim_of(s) * (4 if s.kind == "flat" else 2)
                                        if p else 0 for s, p in zip(submaps, self.pooled)])
             self.counts = np.array([s.count for s in submaps], dtype=np.int64)
-            self.pool_bytes = sum(int(index.ntotal) * int(index.d) * (4 if kind == "flat"
-                                                                      else 2)
-                                  for kind, index, _, _ in self.parts)
+            self.pool_bytes = sum(int(self.row_bytes[owner].sum())
+                                  for _, _, owner, _ in self.parts)
 
     def pays(self, members: np.ndarray) -> bool:
         """Whether one scan of the pool costs less than searching these pooled submaps alone
@@ -182,10 +185,15 @@ class SmallSubmaps:
             if len(got) < 2:
                 continue  # one submap: nothing to save
             got.sort(key=lambda m: m[0])
-            index = make_index(kind, np.concatenate([v for _, v in got]))
+            if kind == "flat":  # the rows themselves, in huge pages: scanned 1.5x faster
+                store = huge_page_array((sum(len(v) for _, v in got), got[0][1].shape[1]),
+                                        np.float32)
+                np.concatenate([v for _, v in got], out=store)
+            else:
+                store = make_index(kind, np.concatenate([v for _, v in got]))
             owner = np.repeat([i for i, _ in got], [len(v) for _, v in got]).astype(np.int64)
             row = np.concatenate([np.arange(len(v), dtype=np.int64) for _, v in got])
-            self.parts.append((kind, index, owner, row))
+            self.parts.append((kind, store, owner, row))
             self.pooled[[i for i, _ in got]] = True
 
     @property
@@ -200,8 +208,8 @@ class SmallSubmaps:
         dist, sub, row = [], [], []
         radius = float(np.nextafter(np.float32(bound), np.float32(np.inf)))
         for kind, index, owner, rows in self.parts:
-            if kind == "flat":
-                _, d, idx = index.range_search(q, radius)
+            if kind == "flat":  # the pooled rows (an array: _build)
+                d, idx = range_search_rows(index, q, radius)
             else:
                 d, idx = index.search(q, index.ntotal)
                 keep = (idx[0] >= 0) & ~(d[0] > bound)
@@ -225,7 +233,10 @@ class SubmapPass:
         self.small = self.facts if self.facts.parts else None
         self.factor = int(rerank_factor)
         self.kk = self.k * max(1, self.factor)
-        self._exact: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        # the hits of the flat/fp16 submaps searched alone, all in three arrays (one mask per
+        # ranking picks a set's: few numpy calls, each of which runs cold after the scans)
+        self._searched = np.zeros(len(submaps), dtype=bool)
+        self._exact: Hits = _empty()
         self._stage1: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self._keys = np.zeros(0, np.int64)  # re-ranked pq rows (sorted keys) ...
         self._dist = np.zeros(0, np.float32)  # ... and their exact squared L2
@@ -233,27 +244,28 @@ class SubmapPass:
     def rank(self, *sets: Sequence[int]) -> list[Hits]:
         """The top-``k`` of each set of submap indices, best first (ties by submap, row)."""
         plans = [self._plan(s) for s in sets]
-        members = unique_ints(np.concatenate([np.asarray(p, np.int64) for _, _, p in plans]))
+        members = unique_ints(np.concatenate([p for _, _, p in plans]))
         if len(members) and not self.small.pays(members):  # a few small submaps: alone
-            plans = [(exact + pooled, pq, []) for exact, pq, pooled in plans]
+            plans = [(np.concatenate([exact, pooled]), pq, pooled[:0])
+                     for exact, pq, pooled in plans]
         with one_faiss_thread():
-            self._search_exact([si for exact, _, _ in plans for si in exact])
+            self._search_exact(np.concatenate([exact for exact, _, _ in plans]))
             picks = [self._pick(pq) for _, pq, _ in plans]
             self._rerank(picks)
-            parts = [self._gather(exact, pick, pooled)
-                     for (exact, _, pooled), pick in zip(plans, picks)]
+            parts = [self._gather(exact, pick) for (exact, _, _), pick in zip(plans, picks)]
             # the small submaps' pool: only rows that can still enter a ranking, i.e. not
             # beyond the k-th distance a set has already (with ties: the bound is included)
-            bound = max((_kth(d, self.k) for (d, _, _), pooled in parts if pooled),
-                        default=None)
+            bound = max((_kth(d, self.k) for (d, _, _), (_, _, pooled) in zip(parts, plans)
+                         if len(pooled)), default=None)
             small = _empty() if bound is None else self.small.hits(self.q, bound)
-            return [self._with_small(hits, pooled, small) for hits, pooled in parts]
+            return [self._with_small(hits, pooled, small)
+                    for hits, (_, _, pooled) in zip(parts, plans)]
 
     def rank_with_global(self, region: Sequence[int]) -> Hits:
         """The region's top-``k`` and, merged in, the global top-``k`` hits the region's ranking
         lacks: ordered by distance, region first on ties (what the two searches and a stable
         merge of their candidates gave)."""
-        (rd, rs, rr), (gd, gs, gr) = self.rank(region, range(len(self.subs)))
+        (rd, rs, rr), (gd, gs, gr) = self.rank(region, np.arange(len(self.subs)))
         extra = ~sorted_member(_key(gs, gr), np.sort(_key(rs, rr)))
         d = np.concatenate([rd, gd[extra]])
         order = np.argsort(d, kind="stable")
@@ -261,7 +273,7 @@ class SubmapPass:
                 np.concatenate([rr, gr[extra]])[order])
 
     # -- the searches (each submap once) ----------------------------------------------------------
-    def _plan(self, submaps: Sequence[int]) -> tuple[list[int], list[int], list[int]]:
+    def _plan(self, submaps: Sequence[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(flat/fp16 submaps searched alone, pq submaps ranked together, small submaps in the
         pool) of a set's live submaps, each in the set's order (a lone pq submap is ranked as a
         pool of one: the same ranking)."""
@@ -270,17 +282,25 @@ class SubmapPass:
         pq = self.facts.is_pq[idx]
         rest = idx[~pq]
         pooled = self.facts.pooled[rest]
-        return rest[~pooled].tolist(), idx[pq].tolist(), rest[pooled].tolist()
+        return rest[~pooled], idx[pq], rest[pooled]
 
-    def _search_exact(self, sis: list[int]) -> None:
-        """The top-``min(k, count)`` of the pass's flat/fp16 submaps (FAISS's exact search),
-        back to back (:func:`~vlm_vpr_ros.maps.indexes.search_exact_many`)."""
-        todo = [si for si in dict.fromkeys(sis) if si not in self._exact]
-        if not todo:
+    def _search_exact(self, sis: np.ndarray) -> None:
+        """The top-``min(k, count)`` of the pass's flat/fp16 submaps not searched yet (FAISS's
+        exact search), back to back (:func:`~vlm_vpr_ros.maps.indexes.search_exact_many`)."""
+        todo = unique_ints(sis)
+        todo = todo[~self._searched[todo]]
+        if not len(todo):
             return
-        found = [(self.subs[si].searchable(), min(self.k, self.subs[si].count)) for si in todo]
-        for si, hit in zip(todo, search_exact_many(found, self.q)):
-            self._exact[si] = hit
+        subs = [self.subs[si] for si in todo.tolist()]
+        d, at, r = search_exact_many([(s.searchable(), min(self.k, s.count)) for s in subs],
+                                     self.q)
+        self._searched[todo] = True
+        if not len(self._exact[0]):  # the pass's first search (most passes: the only one)
+            self._exact = (d, todo[at], r)
+            return
+        dist, sub, row = self._exact
+        self._exact = (np.concatenate([dist, d]), np.concatenate([sub, todo[at]]),
+                       np.concatenate([row, r]))
 
     def _candidates(self, si: int) -> tuple[np.ndarray, np.ndarray]:
         hit = self._stage1.get(si)
@@ -289,13 +309,13 @@ class SubmapPass:
             hit = self._stage1[si] = (np.asarray(dist, np.float32), np.asarray(rows, np.int64))
         return hit
 
-    def _pick(self, pq: list[int]) -> tuple[np.ndarray, np.ndarray]:
+    def _pick(self, pq: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(submap, row) of the best ``k·rerank_factor`` pq candidates of these submaps."""
-        if not pq:
+        if not len(pq):
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
-        stage = [self._candidates(si) for si in pq]
+        stage = [self._candidates(si) for si in pq.tolist()]
         approx = np.concatenate([d for d, _ in stage])
-        owner = np.repeat(np.array(pq, dtype=np.int64), [len(r) for _, r in stage])
+        owner = np.repeat(pq, [len(r) for _, r in stage])
         rows = np.concatenate([r for _, r in stage])
         if len(approx) > self.kk:
             best = np.argpartition(approx, self.kk - 1)[:self.kk]
@@ -305,6 +325,8 @@ class SubmapPass:
     def _rerank(self, picks: list[tuple[np.ndarray, np.ndarray]]) -> None:
         """Exact distances of the picked rows not re-ranked yet, one read per submap (rows
         ascending); the reads of several submaps' cold pages are queued at once first."""
+        if not any(len(owner) for owner, _ in picks):
+            return  # no pq submap in the sets
         keys = unique_ints(np.concatenate([_key(o, r) for o, r in picks]))
         if len(self._keys):
             keys = keys[~sorted_member(keys, self._keys)]
@@ -326,22 +348,23 @@ class SubmapPass:
         order = np.argsort(self._keys)
         self._keys, self._dist = self._keys[order], self._dist[order]
 
-    def _gather(self, exact: list[int], pick: tuple[np.ndarray, np.ndarray],
-                pooled: list[int]) -> tuple[Hits, list[int]]:
-        """(hits of a set's submaps searched alone and of its pq pool, its pooled submaps)."""
-        hits = [self._exact[si] for si in exact]  # searched by _search_exact
+    def _gather(self, exact: np.ndarray, pick: tuple[np.ndarray, np.ndarray]) -> Hits:
+        """The hits of a set's submaps searched alone and of its pq pool."""
+        wanted = np.zeros(len(self.subs), dtype=bool)
+        wanted[exact] = True
+        dist, sub, row = self._exact
+        keep = wanted[sub]
         owner, rows = pick
+        if not len(owner):
+            return dist[keep], sub[keep], row[keep]
         pq_dist = self._dist[np.searchsorted(self._keys, _key(owner, rows))]
-        dist = np.concatenate([d for d, _ in hits] + [pq_dist])
-        sub = np.concatenate([np.repeat(np.array(exact, dtype=np.int64),
-                                        [len(r) for _, r in hits]), owner])
-        row = np.concatenate([r for _, r in hits] + [rows])
-        return (dist, sub, row), pooled
+        return (np.concatenate([dist[keep], pq_dist]), np.concatenate([sub[keep], owner]),
+                np.concatenate([row[keep], rows]))
 
-    def _with_small(self, hits: Hits, pooled: list[int], small: Hits) -> Hits:
+    def _with_small(self, hits: Hits, pooled: np.ndarray, small: Hits) -> Hits:
         """A set's top-``k``: its own hits and its pooled submaps' rows."""
         dist, sub, row = hits
-        if pooled:
+        if len(pooled) and len(small[0]):
             wanted = np.zeros(len(self.subs), dtype=bool)
             wanted[pooled] = True
             keep = wanted[small[1]]
