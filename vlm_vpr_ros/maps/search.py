@@ -33,7 +33,9 @@ when that scans fewer bytes than the whole pool (:data:`CALL_BYTES` per call cou
 Measured on the maps of
 ``benchmarks/bench_core.py`` (512-D, one process, queries interleaved, load ~3): posterior with
 a VLM-like prior / one global search 1.12x with the pool of submaps up to 1,024 references,
-1.18x with a pool up to 256.
+1.18x with a pool up to 256 (issue 23, AVX2 EPYC); on the AVX-512 EPYC of issue 31, with the
+flat pool in huge pages, 1.09x up to 1,024 and 1.07x up to 4,096 (the 10 FAISS calls then scan
+the 100,000 rows as fast as the one global call; each call has ~25 us of its own).
 
 A pass runs FAISS on one OpenMP thread (this thread only; restored afterwards): FAISS splits a
 single query's scan of a large index over an OpenMP team, and a team's wake-up costs a
