@@ -89,8 +89,8 @@ def npy_data_offset(path: Path, arr: np.ndarray) -> int:
 
 def huge_page_array(shape: tuple[int, ...], dtype: Any) -> np.ndarray:
     """A zeroed array in anonymous memory that starts on a 2 MiB boundary and is advised for
-    transparent huge pages (``MADV_HUGEPAGE``); below one huge page, or where the kernel refuses
-    the advice (THP ``never``, not Linux), ordinary memory of the same contents.
+    transparent huge pages (``MADV_HUGEPAGE``); below one huge page, off Linux, or where the
+    kernel has no THP or ignores the advice (THP ``never``), ordinary memory, same contents.
 
     Why by hand: a scan of 512-D float32 rows crosses a 4 KiB page every two rows, and with
     4 KiB pages the TLB misses cost about as much as the arithmetic. Measured on an AVX-512

@@ -18,10 +18,10 @@ the global ranking therefore come from one pass over the map and equal two separ
 (tests/test_fusion_search.py checks that against the two-search implementation).
 
 Merging is numpy, not one Python tuple per hit. A country partition has hundreds of small
-submaps (215 of the 230 of the 100k MP-16 map hold <= 1,024 references, 24 % of them), and a
+submaps (221 of the 230 of the 100k MP-16 map hold <= 4,096 references, 32 % of them), and a
 FAISS call per small submap costs more than its scan: :class:`SmallSubmaps` keeps a copy of
 the small flat/fp16 submaps (<= ``POOL_MAX_REFS`` references each, at most ``POOL_MAX_BYTES``:
-49 MB on that map at 512-D, 24 MB at 256-D; flat rows in huge pages, which a scan reads 1.5x
+63 MiB on that map at 512-D, 32 MiB at 256-D; flat rows in huge pages, which a scan reads ~1.4x
 faster than an index's own copy, issue 31), scanned with one call per kind that
 returns the rows within the k-th distance the pass has already found elsewhere (all rows when
 it has none) — the same distances as each submap's own search (same FAISS kernel; checked in
@@ -187,7 +187,7 @@ class SmallSubmaps:
             if len(got) < 2:
                 continue  # one submap: nothing to save
             got.sort(key=lambda m: m[0])
-            if kind == "flat":  # the rows themselves, in huge pages: scanned 1.5x faster
+            if kind == "flat":  # the rows themselves, in huge pages: scanned ~1.4x faster
                 store = huge_page_array((sum(len(v) for _, v in got), got[0][1].shape[1]),
                                         np.float32)
                 np.concatenate([v for _, v in got], out=store)
