@@ -131,6 +131,36 @@ def test_a_quiet_map_is_not_statted_per_query_and_a_change_is_seen_by_the_next(
     assert stats  # it statted again
 
 
+def test_a_refusal_starts_a_new_generation_for_the_maps_memo_of_passed_hits(small_map,
+                                                                           monkeypatch):
+    """The map remembers which submaps' hit files passed in the current generation; a
+    submap refused in that generation (here: its coords rewritten through a shared mapping,
+    which inotify does not report, and found by a check of all its files) bumps the
+    generation, so the next query whose hits it holds fails instead of reading them."""
+    import mmap
+
+    path, desc = small_map
+    monkeypatch.setattr(watch, "REFRESH_S", 3600.0)
+    loc = Localizer(ReferenceMap.load(path))
+    w = loc.map.submaps[0].watch
+    if not w.active:
+        pytest.skip("no inotify on this file system")
+    for x in desc[:8]:
+        loc.localize(x)
+    best = loc.localize(desc[3]).candidates[0].submap
+    si = next(i for i, s in enumerate(loc.map.submaps) if s.id == best)
+    assert si in loc.map._hits_checked[1]  # passed in this generation: not checked again
+    sub = loc.map.submaps[si]
+    with open(path / sub.files["coords"], "r+b") as fh, mmap.mmap(fh.fileno(), 0) as mm:
+        mm[-8:] = bytes(8) if mm[-8:] != bytes(8) else b"\x01" * 8  # no inotify event
+    gen = w.current()
+    with pytest.raises(MapError, match="refused"):
+        sub.check_files()  # all roles: not passed in this generation, so statted
+    assert w.generation() != gen
+    with pytest.raises(MapError, match="refused"):
+        loc.localize(desc[3])
+
+
 def test_a_check_outside_a_query_drains_the_notice_itself(small_map, monkeypatch):
     path, desc = small_map
     monkeypatch.setattr(watch, "REFRESH_S", 3600.0)

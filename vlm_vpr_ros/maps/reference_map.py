@@ -53,6 +53,7 @@ class ReferenceMap:
         self._small: SmallSubmaps | None = None  # see small_submaps()
         self._cache: dict = {}  # row_bytes()
         self._small_lock = threading.Lock()
+        self._hits_checked: tuple[tuple, set[int]] = ((None, None), set())  # rank_submaps
         #: pq submaps re-rank the top k·rerank_factor PQ candidates exactly (tunable per query)
         self.rerank_factor = int(manifest.get("index_params", {}).get(
             "rerank_factor", indexes.DEFAULT_RERANK_FACTOR))
@@ -128,10 +129,20 @@ class ReferenceMap:
             touched = unique_ints(sub).tolist()
             advise = (len(touched) > 1
                       and self.row_bytes(("coords", "ids")) >= PREFETCH_MIN_BYTES)
+            # submaps whose hits' files passed in this change-notice generation (a query
+            # touches ~20 submaps: a call each cost ~90 us right after the scans, issue 31);
+            # without a change notice, every query checks them all
+            gen = watch.current() if watch is not None else None
+            memo = self._hits_checked
+            if gen is None or memo[0] != (gen, small):
+                memo = self._hits_checked = ((gen, small), set())
             for si in touched:  # the caller reads the hits' ids and positions next; a pooled
                 # submap's hits came from its copy in RAM: its index file is checked here too,
                 # so a submap changed on disk fails the queries it answers (maps/store.py)
-                self.submaps[si].check_files(POOLED_ROLES if small.pooled[si] else HIT_ROLES)
+                if si not in memo[1]:
+                    self.submaps[si].check_files(POOLED_ROLES if small.pooled[si]
+                                                 else HIT_ROLES)
+                    memo[1].add(si)
                 if advise:  # cold pages of several files: reads queued at once
                     self.submaps[si].prefetch(np.sort(row[sub == si]), ("coords", "ids"))
         return dist, sub, row

@@ -268,7 +268,12 @@ class SubmapPass:
         lacks: ordered by distance, region first on ties (what the two searches and a stable
         merge of their candidates gave)."""
         (rd, rs, rr), (gd, gs, gr) = self.rank(region, np.arange(len(self.subs)))
-        extra = ~sorted_member(_key(gs, gr), np.sort(_key(rs, rr)))
+        if self.facts.is_pq.any():  # the two pq picks can differ on ties: by (submap, row)
+            extra = ~sorted_member(_key(gs, gr), np.sort(_key(rs, rr)))
+        else:  # a global hit in a region submap ranks as high in the region: already there
+            inside = np.zeros(len(self.subs), dtype=bool)
+            inside[np.asarray(region, dtype=np.int64)] = True
+            extra = ~inside[gs]
         d = np.concatenate([rd, gd[extra]])
         order = np.argsort(d, kind="stable")
         return (d[order], np.concatenate([rs, gs[extra]])[order],

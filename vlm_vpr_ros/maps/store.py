@@ -229,6 +229,8 @@ class LazySubmap:
             self._refused = str(content_error(self.root, rel, when)).replace(
                 "the map is refused", f"submap {self.id} is refused until the map is reloaded")
             log.error("%s", self._refused)
+            if self.watch is not None:
+                self.watch.bump()  # memos of passed checks (ReferenceMap's) start over
             raise MapError(self._refused)
         self._seen[rel] = now  # same content (e.g. touched), or no fingerprint to compare
 
