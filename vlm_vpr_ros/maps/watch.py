@@ -136,8 +136,8 @@ class FolderWatch:
         with self._lock:
             changed = False
             try:
-                # bytes queued first: no exception on the common empty queue (a raised
-                # BlockingIOError cost ~10 us per query right after the scans)
+                # bytes queued first: no exception raised and caught on the common empty
+                # queue (the drain took 37 us of a posterior query, right after the scans)
                 while _queued(self._fd):
                     os.read(self._fd, 65536)  # every queued event (overflow included)
                     changed = True
