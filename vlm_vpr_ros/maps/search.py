@@ -116,6 +116,13 @@ def one_faiss_thread() -> Iterator[None]:
         faiss.omp_set_num_threads(before)
 
 
+def _members(idx: Any, n: int) -> np.ndarray:
+    """A boolean mask over ``n`` submaps, True at the indices ``idx``."""
+    mask = np.zeros(n, dtype=bool)
+    mask[np.asarray(idx, dtype=np.int64)] = True
+    return mask
+
+
 def _kth(dist: np.ndarray, k: int) -> float:
     """The k-th smallest distance; infinity when there are fewer (or it is NaN)."""
     if len(dist) < k:
@@ -271,9 +278,7 @@ class SubmapPass:
         if self.facts.is_pq.any():  # the two pq picks can differ on ties: by (submap, row)
             extra = ~sorted_member(_key(gs, gr), np.sort(_key(rs, rr)))
         else:  # a global hit in a region submap ranks as high in the region: already there
-            inside = np.zeros(len(self.subs), dtype=bool)
-            inside[np.asarray(region, dtype=np.int64)] = True
-            extra = ~inside[gs]
+            extra = ~_members(region, len(self.subs))[gs]
         d = np.concatenate([rd, gd[extra]])
         order = np.argsort(d, kind="stable")
         return (d[order], np.concatenate([rs, gs[extra]])[order],
@@ -357,10 +362,8 @@ class SubmapPass:
 
     def _gather(self, exact: np.ndarray, pick: tuple[np.ndarray, np.ndarray]) -> Hits:
         """The hits of a set's submaps searched alone and of its pq pool."""
-        wanted = np.zeros(len(self.subs), dtype=bool)
-        wanted[exact] = True
         dist, sub, row = self._exact
-        keep = wanted[sub]
+        keep = _members(exact, len(self.subs))[sub]
         owner, rows = pick
         if not len(owner):
             return dist[keep], sub[keep], row[keep]
@@ -372,9 +375,7 @@ class SubmapPass:
         """A set's top-``k``: its own hits and its pooled submaps' rows."""
         dist, sub, row = hits
         if len(pooled) and len(small[0]):
-            wanted = np.zeros(len(self.subs), dtype=bool)
-            wanted[pooled] = True
-            keep = wanted[small[1]]
+            keep = _members(pooled, len(self.subs))[small[1]]
             dist = np.concatenate([dist, small[0][keep]])
             sub = np.concatenate([sub, small[1][keep]])
             row = np.concatenate([row, small[2][keep]])
