@@ -228,6 +228,9 @@ def child(map_dir: str, work: str, n_loop: int, n_global: int) -> None:
     posterior = timed(post, range(100), lambda i: priors[i % nq])
     timed(loc, range(3), lambda i: None)
     glob = timed(loc, range(n_global), lambda i: None)
+    # every submap is open now: the descriptors the process holds (a mapped file keeps none)
+    fds = (len(os.listdir("/proc/self/fd")) if os.path.isdir("/proc/self/fd") else -1,
+           sum(s.is_open for s in m.submaps))
     # recall vs exact (precomputed by the parent for the 1-submap search)
     ex = np.load(Path(work) / "exact.npz")
     r1 = r50 = 0.0
@@ -237,7 +240,7 @@ def child(map_dir: str, work: str, n_loop: int, n_global: int) -> None:
         want = ex["top"][j][ex["top"][j] >= 0]
         r1 += got[0] == want[0]
         r50 += len(set(got) & set(want.tolist())) / len(want)
-    res = {"open_s": t_ready, "rss_start": rss_start, "rss_after": rss_after,
+    res = {"open_s": t_ready, "rss_start": rss_start, "rss_after": rss_after, "fds": fds,
            "lat_first": first, "lat_1": warm, "lat_largest": largest,
            "search_largest": search_largest, "lat_3": three,
            "lat_posterior": posterior, "region_submaps": statistics.median(region),
@@ -345,6 +348,8 @@ def report(results: dict, n: int) -> None:
         ("RSS anon after start (MiB)", lambda r: f"{r['rss_start']['RssAnon']:.0f}"),
         ("RSS anon after 1k queries (MiB)", lambda r: f"{r['rss_after']['RssAnon']:.0f}"),
         ("RSS file after 1k queries (MiB)", lambda r: f"{r['rss_after']['RssFile']:.0f}"),
+        ("open descriptors, all submaps opened", lambda r: "{} ({} open)".format(
+            *r["fds"]) if r.get("fds") else "n/a"),
         ("1k queries, first pass (ms med/p95)", lambda r: med_p95(r["lat_first"])),
         ("1 submap (ms med/p95)", lambda r: med_p95(r["lat_1"])),
         ("largest submap, search only (ms med/p95)", lambda r: med_p95(r["search_largest"])),

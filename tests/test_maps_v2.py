@@ -570,3 +570,95 @@ def test_prefetch_rows_is_advice_only_and_scattered_rows_are_read_exactly(tmp_pa
         np.testing.assert_array_equal(got, want[rows].astype(np.float32))
     with pytest.raises(IndexError):
         mbuild._Rows(tmp_path / "a.npy")[np.array([1000])]
+
+
+def _fds() -> int:
+    return len(os.listdir("/proc/self/fd"))
+
+
+def _mapped(path) -> bool:
+    with open("/proc/self/maps") as fh:
+        return any(line.rstrip().endswith(os.fspath(path)) for line in fh)
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self/fd"), reason="needs /proc (Linux)")
+def test_mapped_npy_keeps_no_descriptor_and_reads_as_np_load(tmp_path):
+    """map_npy reads what np.load reads (dtypes, Fortran order, header 2.0, empty), read-only,
+    without holding a file descriptor; the file stays readable through the mapping after it
+    is replaced and deleted, and is unmapped when the last view is gone. Object arrays,
+    truncated files and non-.npy files are errors (load_array: a MapError naming the file)."""
+    import gc
+
+    from vlm_vpr_ros.maps.mapped import load_array, map_npy
+
+    rng = np.random.default_rng(5)
+    arrays = {"f8": rng.normal(size=(50, 2)), "f2": rng.normal(size=(7, 512)).astype(np.float16),
+              "S": np.array([b"a/1.jpg", b"", "é".encode()], "S12"), "empty": np.zeros((0, 2)),
+              "F": np.asfortranarray(np.arange(12.0).reshape(3, 4)), "i8": np.arange(10)}
+    for name, want in arrays.items():
+        np.save(tmp_path / f"{name}.npy", want)
+    with open(tmp_path / "v2.npy", "wb") as fh:
+        np.lib.format.write_array(fh, arrays["f8"], version=(2, 0))
+    arrays["v2"] = arrays["f8"]
+    before = _fds()
+    got = {name: map_npy(tmp_path / f"{name}.npy", random_access=name == "f2")
+           for name in arrays}
+    assert _fds() == before
+    for name, want in arrays.items():
+        assert got[name].dtype == want.dtype and got[name].shape == want.shape
+        np.testing.assert_array_equal(got[name], np.load(tmp_path / f"{name}.npy"))
+        assert not got[name].flags.writeable
+        with pytest.raises(ValueError):
+            got[name].flags.writeable = True
+    assert got["F"].flags.f_contiguous
+    # replaced, then deleted: the mapping keeps the old file's data
+    path = tmp_path / "f2.npy"
+    np.save(tmp_path / "new.npy", np.zeros((7, 512), np.float16))
+    os.replace(tmp_path / "new.npy", path)
+    row = got["f2"][3]  # a view keeps the mapping
+    path.unlink()
+    del got
+    gc.collect()
+    np.testing.assert_array_equal(row, arrays["f2"][3])
+    m = map_npy(tmp_path / "i8.npy")
+    assert _mapped(tmp_path / "i8.npy")
+    del m, row
+    gc.collect()
+    assert not _mapped(tmp_path / "i8.npy")
+    # errors
+    np.save(tmp_path / "obj.npy", np.array([{"a": 1}], dtype=object), allow_pickle=True)
+    np.save(tmp_path / "short.npy", np.arange(100.0))
+    os.truncate(tmp_path / "short.npy", 300)
+    (tmp_path / "text.npy").write_text("not an array")
+    for name, msg in (("obj", "object array"), ("short", "truncated"), ("text", "magic")):
+        with pytest.raises(ValueError, match=msg):
+            map_npy(tmp_path / f"{name}.npy")
+        with pytest.raises(MapError, match=f"cannot read {name}.npy"):
+            load_array(tmp_path, f"{name}.npy", (100,), "f8")
+    assert _fds() == before
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self/fd"), reason="needs /proc (Linux)")
+def test_a_map_of_many_submaps_opens_under_a_low_descriptor_limit(ref512, tmp_path):
+    """Every opened submap's files stay mapped but hold no descriptor: a global search of a
+    60-submap pq map (180 mapped files, all opened) works under a soft limit of 48 open
+    files, where one descriptor per mapped file hit EMFILE (it was 3 per pq submap)."""
+    import resource
+
+    d, x, pos, ids = ref512
+    build_from_descriptors(d / "desc.npy", d / "coords.csv", tmp_path / "m", "cosplace",
+                           clusters=60, index="pq", progress=False)
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    limit = 48
+    if _fds() + 16 > limit:
+        pytest.skip(f"{_fds()} descriptors open already")
+    resource.setrlimit(resource.RLIMIT_NOFILE, (limit, hard))
+    try:
+        m = ReferenceMap.load(tmp_path / "m")
+        assert len(m.submaps) >= 50
+        hyp = Localizer(m, LocalizerConfig(top_p=20)).localize(x[17])
+        assert all(s.is_open for s in m.submaps if s.count)
+        assert _fds() < limit - 8
+    finally:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard))
+    assert hyp.ref_id == ids[17] and "global" in hyp.flags

@@ -27,6 +27,11 @@ import zipfile
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
+try:
+    import resource
+except ImportError:  # pragma: no cover - not POSIX: no descriptor limit to ask
+    resource = None
+
 import numpy as np
 
 from vlm_vpr_ros.errors import MapError
@@ -48,6 +53,8 @@ SMALL_FILE_BYTES = 256 * 1024
 #: larger files: the sha256 of this many 4 KiB pages (and the size) is their fingerprint
 SAMPLE_PAGES = 4
 PAGE_BYTES = 4096
+#: at most this many files open at once in a content check (fewer under a low descriptor limit)
+CHECK_BATCH_FILES = 256
 _SAMPLE_TAG = b"vlm_vpr_ros.sample.v1"
 
 
@@ -259,8 +266,9 @@ def check_content(path: Path, manifest: Mapping[str, Any], rels: list[str]) -> i
     todo = [r for r in rels if isinstance(files[r].get("sample"), str)
             or int(files[r]["bytes"]) <= SMALL_FILE_BYTES]
     unchecked = len(rels) - len(todo)
-    for start in range(0, len(todo), 256):
-        batch, fds = todo[start:start + 256], []
+    step = _batch_files()
+    for start in range(0, len(todo), step):
+        batch, fds = todo[start:start + step], []
         try:
             for rel in batch:
                 try:
@@ -286,6 +294,17 @@ def check_content(path: Path, manifest: Mapping[str, Any], rels: list[str]) -> i
             for fd in fds:
                 os.close(fd)
     return unchecked
+
+
+def _batch_files() -> int:
+    """How many files :func:`check_content` opens at once: :data:`CHECK_BATCH_FILES`, or an
+    eighth of the process's soft descriptor limit when that is fewer (a map is opened beside
+    cameras, sockets and another map's files)."""
+    if resource is None:
+        return CHECK_BATCH_FILES
+    soft = resource.getrlimit(resource.RLIMIT_NOFILE)[0]
+    return CHECK_BATCH_FILES if soft == resource.RLIM_INFINITY else max(
+        1, min(CHECK_BATCH_FILES, soft // 8))
 
 
 def _advise(fd: int, offsets: list[int], length: int) -> None:

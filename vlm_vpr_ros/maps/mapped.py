@@ -1,12 +1,17 @@
 """Memory-mapped arrays of a map folder: loading a ``.npy`` as a read-only mapping of the
-expected shape, the ids as a sequence of str over their fixed-width bytes, read-ahead advice
-for scattered rows (used by :mod:`.store`, :mod:`.features` and the descriptor builder), and
-anonymous huge-page memory for the arrays a query scans whole (:mod:`.search`'s pool)."""
+expected shape (one that keeps no file descriptor open), the ids as a sequence of str over
+their fixed-width bytes, read-ahead advice for scattered rows (used by :mod:`.store`,
+:mod:`.features` and the descriptor builder), and anonymous huge-page memory for the arrays a
+query scans whole (:mod:`.search`'s pool)."""
 
 from __future__ import annotations
 
+import ctypes
+import functools
+import math
 import mmap
 import os
+import weakref
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -42,23 +47,88 @@ class IdView:
 
 
 def load_array(root: Path, rel: str, shape: tuple[int, ...], kind: str) -> np.ndarray:
-    """A memory-mapped ``.npy`` of the expected shape and dtype kind."""
+    """A memory-mapped ``.npy`` of the expected shape and dtype kind (:func:`map_npy`; rows
+    are read a few at a time, so without read-ahead: otherwise every query maps ~32 pages per
+    row and the file-backed RSS grows towards the whole file)."""
     try:
-        arr = np.load(root / rel, mmap_mode="r", allow_pickle=False)
+        arr = map_npy(root / rel, random_access=True)
     except (OSError, ValueError) as exc:
         raise MapError(f"{root}: cannot read {rel}: {exc}") from exc
-    if isinstance(arr, np.memmap):
-        mm = getattr(arr, "_mmap", None)
-        if mm is not None and hasattr(mmap, "MADV_RANDOM"):
-            # rows are read a few at a time: no read-ahead, or every query maps ~32 pages per
-            # row and the file-backed RSS grows towards the whole file
-            mm.madvise(mmap.MADV_RANDOM)
-        arr = arr.view(np.ndarray)  # same mapping, without np.memmap's per-item overhead
     ok = arr.shape == shape and (arr.dtype.kind == "S" if kind == "S"
                                  else arr.dtype == np.dtype(kind))
     if not ok:
         raise MapError(f"{root}: {rel} is {arr.dtype}{arr.shape}, expected {kind}{shape}")
     return arr
+
+
+@functools.lru_cache(maxsize=1)
+def _libc() -> Any:
+    """libc's ``mmap``, ``munmap`` and ``madvise`` through ctypes; None where they cannot be
+    reached (then :func:`map_npy` uses numpy's own mapping)."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        calls = (libc.mmap, libc.munmap, libc.madvise)
+    except (OSError, AttributeError, TypeError):  # TypeError: no CDLL(None) (Windows)
+        return None
+    calls[0].restype = ctypes.c_void_p
+    calls[0].argtypes = (ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int, ctypes.c_int,
+                         ctypes.c_int, ctypes.c_long)
+    calls[1].argtypes = (ctypes.c_void_p, ctypes.c_size_t)
+    calls[2].argtypes = (ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int)
+    return libc
+
+
+def _npy_header(fh: Any) -> tuple[tuple[int, ...], bool, np.dtype]:
+    """(shape, Fortran order, dtype) of the ``.npy`` open in ``fh``, which is left at the
+    data (numpy's own header readers; versions 1.0 and 2.0, what ``np.save`` writes unless
+    a structured dtype has non-ASCII field names)."""
+    version = np.lib.format.read_magic(fh)
+    if version == (1, 0):
+        return np.lib.format.read_array_header_1_0(fh)
+    if version == (2, 0):
+        return np.lib.format.read_array_header_2_0(fh)
+    raise ValueError(f"unsupported .npy format version {version[0]}.{version[1]}")
+
+
+def map_npy(path: Path | str, random_access: bool = False) -> np.ndarray:
+    """The data of the ``.npy`` at ``path`` as a read-only memory mapping that keeps no file
+    descriptor open (the kernel keeps the mapped file alive, also after it is replaced or
+    deleted); unmapped when the last view of it is gone. ``random_access``: advise the
+    kernel not to read ahead (``MADV_RANDOM``). Object arrays are refused (no pickle).
+
+    Why by hand: ``np.load(mmap_mode="r")`` maps through Python's ``mmap``, which keeps a
+    duplicate of the descriptor for the mapping's life (before Python 3.13's ``trackfd``).
+    A map keeps two to six files of each opened submap mapped (ids, coordinates, re-rank
+    vectors, local features), so a planet map of a few hundred submaps reached the common
+    soft limit of 1,024 descriptors: measured here, a 166-submap 4.1M pq map held 496 after
+    one global query, and under a limit of 300 every such query failed with ``EMFILE``, as
+    did every other file or socket the process then tried to open."""
+    with open(path, "rb") as fh:
+        shape, fortran, dtype = _npy_header(fh)
+        if dtype.hasobject:
+            raise ValueError("an object array (pickled data) is not read")
+        offset, size = fh.tell(), os.fstat(fh.fileno()).st_size
+        count = math.prod(shape)
+        if size < offset + count * dtype.itemsize:
+            raise ValueError(f"truncated: {size - offset} bytes of data, the header needs "
+                             f"{count * dtype.itemsize}")
+        libc = _libc()
+        if libc is None:  # numpy's mapping (it keeps a descriptor)
+            arr = np.load(path, mmap_mode="r", allow_pickle=False).view(np.ndarray)
+            mm = getattr(arr.base, "_mmap", None)
+            if random_access and mm is not None and hasattr(mmap, "MADV_RANDOM"):
+                mm.madvise(mmap.MADV_RANDOM)
+            return arr
+        addr = libc.mmap(None, size, mmap.PROT_READ, mmap.MAP_SHARED, fh.fileno(), 0)
+        if addr is None or addr == ctypes.c_void_p(-1).value:  # MAP_FAILED
+            err = ctypes.get_errno()
+            raise OSError(err, f"cannot map {path}: {os.strerror(err)}")
+    if random_access and hasattr(mmap, "MADV_RANDOM"):
+        libc.madvise(addr, size, mmap.MADV_RANDOM)  # advice: its failure changes nothing
+    buf = (ctypes.c_ubyte * size).from_address(addr)
+    weakref.finalize(buf, libc.munmap, addr, size).atexit = False  # exit unmaps anyway
+    arr = np.frombuffer(memoryview(buf).toreadonly(), dtype, count, offset)
+    return arr.reshape(shape, order="F" if fortran else "C")
 
 
 def prefetch_rows(path: Path | str, row_bytes: int, rows: np.ndarray, offset: int) -> None:
