@@ -1,10 +1,19 @@
 """The demo (one shared run, ``demo_run``): the look-alike step shows the prior's value (target:
 prior + VPR beats VPR only by >= 20 points at 25 m), and its numbers hold against independent
-references (brute-force nearest neighbours, distances recomputed, the priors scored directly)."""
+references (brute-force nearest neighbours, distances recomputed, the priors scored directly);
+the README's and docs' demo tables are what it produced, and docs/api.md's session runs as
+written on its output. Every test of the demo's output is in this file: one worker runs the demo
+and its tests (a second worker waiting on the shared run sat idle ~60 s of the suite)."""
 
 from __future__ import annotations
 
+import contextlib
+import importlib.util
+import io
 import json
+import re
+import sys
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -13,6 +22,16 @@ import pytest
 from vlm_vpr_ros.evaluation.demo import (FUSED, PAPER, PRIOR, THRESHOLDS, TITLES, TRUSTED,
                                          VPR, DEMO_DATA)
 from vlm_vpr_ros.geodesy import haversine_km
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _gen_docs():
+    spec = importlib.util.spec_from_file_location("gen_docs", REPO / "scripts" / "gen_docs.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["gen_docs"] = mod  # dataclasses look their module up
+    spec.loader.exec_module(mod)
+    return mod
 
 
 @pytest.fixture(scope="module")
@@ -153,3 +172,42 @@ def test_figures_are_images(doc):
     for key in ("lookalike_error_cdf_png", "lookalike_contact_sheet_png", "world_map_png"):
         img = cv2.imread(doc["figures"][key], cv2.IMREAD_COLOR)
         assert img is not None and img.shape[0] > 300 and img.shape[1] > 500, key
+
+
+def code_blocks(path: Path) -> list[str]:
+    return re.findall(r"^```python\n(.*?)^```", path.read_text(encoding="utf-8"), re.S | re.M)
+
+
+def test_api_page_runs(demo_run, tmp_path, monkeypatch):
+    from vlm_vpr_ros import Hypothesis
+    from vlm_vpr_ros.files.csvio import read_table
+    from vlm_vpr_ros.geodesy import haversine_km
+
+    out, _ = demo_run
+    (tmp_path / "demo_out").symlink_to(out)  # "from the repository folder, after make demo"
+    (tmp_path / "vlm_vpr_ros").symlink_to(REPO / "vlm_vpr_ros")
+    monkeypatch.chdir(tmp_path)
+    blocks = code_blocks(REPO / "docs" / "api.md")
+    assert len(blocks) >= 4
+    ns: dict = {}
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        for code in blocks:
+            exec(compile(code, "docs/api.md", "exec"), ns)  # noqa: S102 - the doc's own code
+    truth = {r["file"]: (float(r["lat"]), float(r["lon"]))
+             for r in read_table(out / "queries.csv", ("file", "lat", "lon"))}
+    hyp = ns["hyp"]
+    assert isinstance(hyp, Hypothesis) and hyp.fusion == "posterior"
+    assert haversine_km(hyp.lat, hyp.lon, *truth["546314506564628.jpg"]) < 0.025
+    assert ns["answer"].ok and ns["answer"].source == "recorded"
+    assert "MapError" in printed.getvalue()  # the error example
+    assert printed.getvalue().count("\n") >= 8
+
+
+def test_docs_tables_equal_the_shipped_demo(demo_run):
+    """The README's and docs' demo tables are exactly what `make demo` produces."""
+    out, _ = demo_run
+    diffs, _ = _gen_docs().run(REPO, check=True, overrides={"demo": str(out / "demo.json")},
+                            only={"demo"}, strict=True)
+    assert not diffs, ("tables differ from the demo; run `make demo && python "
+                       "scripts/gen_docs.py`:\n" + "\n".join(diffs))
