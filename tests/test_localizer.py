@@ -110,6 +110,37 @@ def test_rerank_chooses_nearest_candidate_to_prior():
     assert hyp.submap == "*" and "no_submap" in hyp.flags
 
 
+def test_ranked_candidates_follow_each_modes_keys_and_are_plain_candidates():
+    """After the chosen one, the candidates are ordered by the mode's keys (recomputed here
+    with Python's stable sort of the returned candidates): paper with a prior by (distance to
+    the prior, descriptor distance), paper without one by descriptor distance, posterior by
+    weight; Candidate.from_columns makes what the constructor makes (frozen, equal, hash)."""
+    import dataclasses
+
+    from vlm_vpr_ros.types import Candidate
+
+    m, desc, ids = synthetic_map()
+    q = desc[ids.index("tokyo_003.jpg")] + 0.01
+    for fusion, prior, key in (("paper", prior_at(*CITIES["lima"]),
+                                lambda c: (c.prior_km, c.l2_sq)),
+                               ("paper", None, lambda c: c.l2_sq),
+                               ("posterior", prior_at(*CITIES["tokyo"]), lambda c: -c.posterior)):
+        hyp = Localizer(m, LocalizerConfig(top_p=30, use_submaps=False, fusion=fusion)).localize(
+            q, prior)
+        rest = hyp.candidates[1:]
+        assert len(rest) == 29 and rest == sorted(rest, key=key), fusion
+    cols = (["a", "b"], [1.0, 2.0], [3.0, 4.0], [0.5, 0.25], ["s0", "s1"], [None, 7.0],
+            [0.9, None], [4, 5])
+    fast = Candidate.from_columns(*cols)
+    slow = [Candidate(*row) for row in zip(*cols)]
+    assert fast == slow and [repr(c) for c in fast] == [repr(c) for c in slow]
+    assert hash(fast[1]) == hash(slow[1]) and fast[0].inliers == -1
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        fast[0].lat = 0.0
+    with pytest.raises(ValueError):
+        Candidate.from_columns(*cols[:-1], [4])
+
+
 def test_no_rerank_keeps_best_descriptor_match():
     m, desc, ids = synthetic_map()
     q = desc[ids.index("tokyo_003.jpg")]

