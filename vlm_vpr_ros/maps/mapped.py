@@ -18,6 +18,7 @@ from typing import Any, Iterator
 import numpy as np
 
 from vlm_vpr_ros.errors import MapError
+from vlm_vpr_ros.libc import libc
 
 
 #: a transparent huge page on x86-64 (and the alignment that lets the kernel use them)
@@ -63,19 +64,17 @@ def load_array(root: Path, rel: str, shape: tuple[int, ...], kind: str) -> np.nd
 
 @functools.lru_cache(maxsize=1)
 def _libc() -> Any:
-    """libc's ``mmap``, ``munmap`` and ``madvise`` through ctypes; None where they cannot be
-    reached (then :func:`map_npy` uses numpy's own mapping)."""
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        calls = (libc.mmap, libc.munmap, libc.madvise)
-    except (OSError, AttributeError, TypeError):  # TypeError: no CDLL(None) (Windows)
+    """The C library with ``mmap``, ``munmap`` and ``madvise`` declared; None where they cannot
+    be reached (then :func:`map_npy` uses numpy's own mapping)."""
+    lib = libc()
+    if lib is None or not all(hasattr(lib, f) for f in ("mmap", "munmap", "madvise")):
         return None
-    calls[0].restype = ctypes.c_void_p
-    calls[0].argtypes = (ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int, ctypes.c_int,
+    lib.mmap.restype = ctypes.c_void_p
+    lib.mmap.argtypes = (ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int, ctypes.c_int,
                          ctypes.c_int, ctypes.c_long)
-    calls[1].argtypes = (ctypes.c_void_p, ctypes.c_size_t)
-    calls[2].argtypes = (ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int)
-    return libc
+    lib.munmap.argtypes = (ctypes.c_void_p, ctypes.c_size_t)
+    lib.madvise.argtypes = (ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int)
+    return lib
 
 
 def _npy_header(fh: Any) -> tuple[tuple[int, ...], bool, np.dtype]:

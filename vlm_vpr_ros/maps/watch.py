@@ -33,7 +33,6 @@ from __future__ import annotations
 import array
 import contextlib
 import ctypes
-import ctypes.util
 import fcntl
 import logging
 import os
@@ -43,6 +42,8 @@ import time
 import weakref
 from pathlib import Path
 from typing import Iterator
+
+from vlm_vpr_ros.libc import libc
 
 log = logging.getLogger(__name__)
 
@@ -58,12 +59,8 @@ _OUTSIDE = object()  # no query on this thread
 
 
 def _libc() -> ctypes.CDLL | None:
-    name = ctypes.util.find_library("c")
-    try:
-        libc = ctypes.CDLL(name or "libc.so.6", use_errno=True)
-    except OSError:
-        return None
-    return libc if hasattr(libc, "inotify_init1") else None
+    lib = libc()
+    return lib if lib is not None and hasattr(lib, "inotify_init1") else None
 
 
 def _queued(fd: int) -> int:

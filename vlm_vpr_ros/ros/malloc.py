@@ -21,8 +21,9 @@ diagnostics); ``benchmarks/rss_node.py`` measures the RSS under a camera.
 
 from __future__ import annotations
 
-import ctypes
 import os
+
+from vlm_vpr_ros.libc import libc
 
 #: glibc's mallopt parameters
 _M_TRIM_THRESHOLD = -1
@@ -43,18 +44,18 @@ def tune_malloc(arenas: int = ARENAS) -> bool:
     only; elsewhere a no-op). :func:`trim_malloc` hands freed memory back to the OS."""
     if os.environ.get("MALLOC_ARENA_MAX"):
         return False
+    lib = libc()
     try:
-        libc = ctypes.CDLL("libc.so.6")
-        return bool(libc.mallopt(_M_ARENA_MAX, int(arenas))
-                    and libc.mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD)
-                    and libc.mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD))
-    except (OSError, AttributeError):
+        return bool(lib.mallopt(_M_ARENA_MAX, int(arenas))
+                    and lib.mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD)
+                    and lib.mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD))
+    except AttributeError:  # not glibc (or no C library)
         return False
 
 
 def trim_malloc() -> None:
     """glibc ``malloc_trim(0)``: return the free memory of every arena to the OS."""
     try:
-        ctypes.CDLL("libc.so.6").malloc_trim(0)
-    except (OSError, AttributeError):
+        libc().malloc_trim(0)
+    except AttributeError:  # not glibc (or no C library)
         pass
