@@ -5,26 +5,14 @@ and the look-alike step's twins are exact ties that the map's order breaks."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
+from repo_scripts import load
 
-
-def _script(name: str):
-    spec = importlib.util.spec_from_file_location(name, REPO / "scripts" / f"{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[name] = mod
-    spec.loader.exec_module(mod)
-    return mod
-
-
-check = _script("check_cpu_paths")
+check = load("scripts/check_cpu_paths.py")
 
 
 @pytest.fixture(scope="module")

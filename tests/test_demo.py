@@ -8,11 +8,9 @@ and its tests (a second worker waiting on the shared run sat idle ~60 s of the s
 from __future__ import annotations
 
 import contextlib
-import importlib.util
 import io
 import json
 import re
-import sys
 from pathlib import Path
 
 import cv2
@@ -23,15 +21,7 @@ from vlm_vpr_ros.evaluation.demo import (FUSED, PAPER, PRIOR, THRESHOLDS, TITLES
                                          VPR, DEMO_DATA)
 from vlm_vpr_ros.geodesy import haversine_km
 
-REPO = Path(__file__).resolve().parents[1]
-
-
-def _gen_docs():
-    spec = importlib.util.spec_from_file_location("gen_docs", REPO / "scripts" / "gen_docs.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["gen_docs"] = mod  # dataclasses look their module up
-    spec.loader.exec_module(mod)
-    return mod
+from repo_scripts import REPO, load
 
 
 @pytest.fixture(scope="module")
@@ -207,7 +197,8 @@ def test_api_page_runs(demo_run, tmp_path, monkeypatch):
 def test_docs_tables_equal_the_shipped_demo(demo_run):
     """The README's and docs' demo tables are exactly what `make demo` produces."""
     out, _ = demo_run
-    diffs, _ = _gen_docs().run(REPO, check=True, overrides={"demo": str(out / "demo.json")},
+    gen_docs = load("scripts/gen_docs.py")
+    diffs, _ = gen_docs.run(REPO, check=True, overrides={"demo": str(out / "demo.json")},
                             only={"demo"}, strict=True)
     assert not diffs, ("tables differ from the demo; run `make demo && python "
                        "scripts/gen_docs.py`:\n" + "\n".join(diffs))

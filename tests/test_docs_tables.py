@@ -5,28 +5,17 @@ and docs' demo tables equal what the shipped demo produces is tested with the de
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import re
-import sys
-from pathlib import Path
 
 import cv2
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
+from repo_scripts import REPO, load
 
 
-def _script(name: str):
-    spec = importlib.util.spec_from_file_location(name, REPO / "scripts" / f"{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[name] = mod  # dataclasses look their module up
-    spec.loader.exec_module(mod)
-    return mod
-
-
-gen_docs = _script("gen_docs")
-draw_stages = _script("draw_stages")
+gen_docs = load("scripts/gen_docs.py")
+draw_stages = load("scripts/draw_stages.py")
 
 
 @pytest.fixture

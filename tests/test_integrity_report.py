@@ -16,6 +16,8 @@ from vlm_vpr_ros.evaluation import integrity, integrity_tables
 from vlm_vpr_ros.evaluation.integrity import Trial, integrity_report, time_series
 from vlm_vpr_ros.errors import ConfigError, DataError
 
+from repo_scripts import load
+
 #: metres per degree of latitude on the package's sphere (haversine, R = 6371.0088 km)
 M_PER_DEG = 6371008.8 * math.pi / 180.0
 BASE = (37.7749, -122.4194)
@@ -332,15 +334,7 @@ def test_evaluate_bag_writes_the_report(demo_map, demo_data, tmp_path):
 
 
 def _soak_module():
-    import importlib.util
-    import sys
-
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "soak_node.py"
-    spec = importlib.util.spec_from_file_location("soak_node", path)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["soak_node"] = mod
-    spec.loader.exec_module(mod)
-    return mod
+    return load("benchmarks/soak_node.py")
 
 
 def test_soak_protection_level_from_covariance_and_frames():

@@ -109,24 +109,20 @@ def test_evaluate_streams_large_results(tmp_path):
     """400,000 rows (the generator of benchmarks/bench_evaluate.py): `evaluate` in a child
     process stays under 250 MB peak (rows held as dicts took ~1 KB each: ~400 MB here) and its
     numbers match an independent count over the same file."""
-    import importlib.util
     import os
     import subprocess
     import sys
-    from pathlib import Path
 
-    repo = Path(__file__).resolve().parents[2]
-    spec = importlib.util.spec_from_file_location("bench_evaluate",
-                                                  repo / "benchmarks" / "bench_evaluate.py")
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    from repo_scripts import REPO, load
+
+    bench = load("benchmarks/bench_evaluate.py")
     n = 400_000
     res, gt = bench.generate(tmp_path, n)
     # the child's own high-water mark (VmHWM: getrusage's maxrss would include the RSS of
     # this forked pytest process before the child's exec)
     proc = subprocess.run([sys.executable, "-c", bench.CHILD, "evaluate", "--results", str(res),
                            "--ground-truth", str(gt), "--json"], capture_output=True,
-                          text=True, timeout=600, env={**os.environ, "PYTHONPATH": str(repo)})
+                          text=True, timeout=600, env={**os.environ, "PYTHONPATH": str(REPO)})
     assert proc.returncode == 0, proc.stderr
     peak_mb = bench.peak_mb(proc.stderr)
     s = json.loads(proc.stdout)
