@@ -7,8 +7,10 @@ The 100k maps are synthetic descriptors (random unit vectors) at the 100k real M
 ../shared/data/mp16_coords (random positions if that folder is absent), one submap per country,
 saved and opened from disk as the node opens a map (memory-mapped). Query rows are timed
 round-robin (query i in every mode before query i+1), so a change in machine load hits every
-row alike; "submaps searched" and "references scanned" are counted on one extra query by
-wrapping every submap's search (a submap searched twice counts twice).
+row alike, in a random order per query (a mode run right after another on the same query finds
+rows in the caches: no mode always runs first); "submaps searched" and "references scanned" are
+counted on one extra query by wrapping every submap's search (a submap searched twice counts
+twice).
 
     .venv/bin/python benchmarks/bench_core.py [--refs 100000] [--dim 512] [--queries 200]
         [--json bench_core.json]
@@ -23,6 +25,7 @@ import argparse
 import csv
 import json
 import os
+import random
 import statistics
 import sys
 import tempfile
@@ -196,8 +199,11 @@ def bench_modes(tmp: Path, c: np.ndarray, src: str, dim: int, n_queries: int,
         rows[key] = {"name": name, "region_submaps": len(region),
                      "submaps_searched": seen["submaps"], "faiss_searches": seen["searches"],
                      "refs_scanned": seen["refs"], "times": []}
+    order = list(modes)
+    shuffle = random.Random(0).shuffle
     for x in q[1:]:
-        for _, loc, pr, key in modes:
+        shuffle(order)
+        for _, loc, pr, key in order:
             t = time.perf_counter()
             loc.localize(x, pr)
             rows[key]["times"].append(time.perf_counter() - t)
@@ -212,13 +218,14 @@ def bench_modes(tmp: Path, c: np.ndarray, src: str, dim: int, n_queries: int,
 
 def threads_rows(index, queries: np.ndarray, top_p: int) -> dict:
     """FAISS's search alone on one flat index, with its OpenMP default and with the one thread
-    a localizer query uses (maps/search.py), alternated query by query."""
+    a localizer query uses (maps/search.py), alternated query by query (each first on every
+    other query)."""
     import faiss
 
     default = faiss.omp_get_max_threads()
     times: dict[int, list[float]] = {default: [], 1: []}
-    for x in queries:
-        for n in times:
+    for i, x in enumerate(queries):
+        for n in (list(times) if i % 2 else list(times)[::-1]):
             faiss.omp_set_num_threads(n)
             t = time.perf_counter()
             index.search(x[None, :], top_p)

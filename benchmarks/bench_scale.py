@@ -19,9 +19,10 @@ top-50 + re-rank (1 submap, the largest submap, 3 submaps, global; median and p9
 recall@1 / recall@50 of the retrieval vs exact float32 brute force over the same submap.
 
 Issue 31: per kind, the thread policy and the re-rank are compared in the query process,
-interleaved query by query (wall and CPU ms): the largest submap's search alone, the paper's
-query on it and the posterior over the whole map, with one FAISS thread per query (default),
-with FAISS's OpenMP default, and with the re-rank of before (FAISS's fp16 decoder).
+interleaved query by query, each query's runs in a random order (wall ms, and CPU ms of the
+calling thread): the largest submap's search alone, the paper's query on it and the posterior
+over the whole map, with one FAISS thread per query (default), with FAISS's OpenMP default,
+and with the re-rank of before (FAISS's fp16 decoder).
 
     .venv/bin/python benchmarks/bench_scale.py --n 100000 [--kinds flat,fp16,pq,auto]
         [--ram-budget-mb 250] [--max-submap-size 50000] [--workdir /tmp/bench_scale] [--keep]
@@ -260,8 +261,11 @@ VARIANTS = (("1 thread, OpenCV re-rank (default)", True, True),
 def thread_policy(m, loc, big: int, bp, q: np.ndarray, n: int = 200) -> dict:
     """Wall and CPU ms (median) of the largest submap's search alone and of the paper's whole
     query on it, and of the posterior on the whole map, for each of :data:`VARIANTS`,
-    interleaved query by query (one run: the load hits every variant alike)."""
+    interleaved query by query (one run: the load hits every variant alike), each query's
+    runs in a random order (seeded): a run right after another of the same query finds its
+    rows in the caches, so a fixed order flatters whatever runs second."""
     import contextlib
+    import random
 
     from vlm_vpr_ros.localization.localizer import Localizer, LocalizerConfig
     from vlm_vpr_ros.maps import indexes, search
@@ -281,17 +285,19 @@ def thread_policy(m, loc, big: int, bp, q: np.ndarray, n: int = 200) -> dict:
               "paper": lambda x: loc.localize(x, bp),
               "posterior": lambda x: post.localize(x, None)}
     out = {f"{s}|{v[0]}": ([], []) for s in shapes for v in VARIANTS}
+    runs = [(shape, v) for shape in shapes for v in VARIANTS]
+    rng = random.Random(0)
     for i in range(n + 5):
         x = np.ascontiguousarray(q[i % len(q)])
-        for shape, fn in shapes.items():
-            for name, single, opencv in VARIANTS:
-                with variant(single, opencv):
-                    w, c = time.perf_counter(), time.thread_time()
-                    fn(x)
-                    c, w = time.thread_time() - c, time.perf_counter() - w
-                if i >= 5:  # warm-up
-                    out[f"{shape}|{name}"][0].append(w * 1e3)
-                    out[f"{shape}|{name}"][1].append(c * 1e3)
+        rng.shuffle(runs)
+        for shape, (name, single, opencv) in runs:
+            with variant(single, opencv):
+                w, c = time.perf_counter(), time.thread_time()
+                shapes[shape](x)
+                c, w = time.thread_time() - c, time.perf_counter() - w
+            if i >= 5:  # warm-up
+                out[f"{shape}|{name}"][0].append(w * 1e3)
+                out[f"{shape}|{name}"][1].append(c * 1e3)
     return {k: [statistics.median(w), statistics.median(c)] for k, (w, c) in out.items()}
 
 
@@ -371,7 +377,8 @@ def report(results: dict, n: int) -> None:
     for kind, r in results.items():
         if not r.get("shapes"):
             continue
-        print(f"\n{kind}: thread policy and re-rank, same process, interleaved query by query "
+        print(f"\n{kind}: thread policy and re-rank, same process, queries interleaved in a "
+              f"random order "
               f"(largest submap {r['largest'][0]}, {r['largest'][1]:,} refs, {r['largest'][2]};"
               f" posterior: no prior, the whole map)")
         print(f"  {'shape':<11}{'variant':<52}{'wall ms':>9}{'cpu ms':>9}{'/ default':>11}")
