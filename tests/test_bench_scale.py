@@ -22,7 +22,7 @@ def test_bench_scale_small_run_prints_the_table(tmp_path):
                 "largest submap, search only (ms med/p95)", "recall@50 vs exact (%)",
                 "pq / flat (same run)"):
         assert row in out.stdout, out.stdout
-    policy = out.stdout.split("pq: thread policy and re-rank")[1].splitlines()
+    policy = out.stdout.split("pq: thread policy and re-rank")[1].split("\n\n")[0].splitlines()
     for shape in ("search", "paper", "posterior"):  # every variant of every shape timed
         times = [float(line.split()[-3]) for line in policy if line.startswith(f"  {shape} ")]
         assert len(times) == 3 and all(t > 0 for t in times), policy
