@@ -171,7 +171,6 @@ def code_blocks(path: Path) -> list[str]:
 def test_api_page_runs(demo_run, tmp_path, monkeypatch):
     from vlm_vpr_ros import Hypothesis
     from vlm_vpr_ros.files.csvio import read_table
-    from vlm_vpr_ros.geodesy import haversine_km
 
     out, _ = demo_run
     (tmp_path / "demo_out").symlink_to(out)  # "from the repository folder, after make demo"

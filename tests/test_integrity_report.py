@@ -333,16 +333,12 @@ def test_evaluate_bag_writes_the_report(demo_map, demo_data, tmp_path):
     assert summary["integrity"]["regions"] == rep["regions"]
 
 
-def _soak_module():
-    return load("benchmarks/soak_node.py")
-
-
 def test_soak_protection_level_from_covariance_and_frames():
     """The soak's assumed relation PL = k σ: a circular 2-D Gaussian leaves PL with probability
     1e-3 (Monte Carlo); junk covariances give None; frames fit inside 640x480."""
     import numpy as np
 
-    soak = _soak_module()
+    soak = load("benchmarks/soak_node.py")
     sigma = 10.0
     pl = soak.protection_from_covariance([sigma ** 2, 0, 0, 0, 4.0, 0, 0, 0, 1e6])
     r = np.hypot(*np.random.default_rng(0).normal(0.0, sigma, (2, 2_000_000)))
