@@ -22,7 +22,9 @@ Issue 31: per kind, the thread policy and the re-rank are compared in the query 
 interleaved query by query, each query's runs in a random order (wall ms, and CPU ms of the
 calling thread): the largest submap's search alone, the paper's query on it and the posterior
 over the whole map, with one FAISS thread per query (default), with FAISS's OpenMP default,
-and with the re-rank of before (FAISS's fp16 decoder).
+and with the re-rank of before (FAISS's fp16 decoder). The 1-submap and largest-submap queries
+also run each between two host-speed probes (``cpuinfo.paired``): their medians with the host
+at full speed and contended (a shared machine's other tenant slows the same code ~1.6x).
 
     .venv/bin/python benchmarks/bench_scale.py --n 100000 [--kinds flat,fp16,pq,auto]
         [--ram-budget-mb 250] [--max-submap-size 50000] [--workdir /tmp/bench_scale] [--keep]
@@ -213,6 +215,10 @@ def child(map_dir: str, work: str, n_loop: int, n_global: int) -> None:
     assert loc.select_submaps(bp.prior)[0] == [big]
     timed(loc, range(20), lambda i: bp)
     largest = timed(loc, range(300), lambda i: bp)
+    # the same queries again, each between two host-speed probes (benchmarks/cpuinfo.py)
+    host = {name: cpuinfo.by_host_speed(*cpuinfo.paired(run, 300)) for name, run in (
+        ("1 submap", lambda i: loc.localize(q[i % nq], priors[i % nq])),
+        ("largest submap", lambda i: loc.localize(q[i % nq], bp)))}
     search_largest = []  # retrieval alone: top-50 (+ re-rank for pq), no fusion
     for i in range(320):
         t = time.perf_counter()
@@ -243,7 +249,7 @@ def child(map_dir: str, work: str, n_loop: int, n_global: int) -> None:
         r50 += len(set(got) & set(want.tolist())) / len(want)
     res = {"open_s": t_ready, "rss_start": rss_start, "rss_after": rss_after, "fds": fds,
            "lat_first": first, "lat_1": warm, "lat_largest": largest,
-           "search_largest": search_largest, "lat_3": three,
+           "search_largest": search_largest, "lat_3": three, "host": host,
            "lat_posterior": posterior, "region_submaps": statistics.median(region),
            "lat_global": glob, "shapes": shapes,
            "largest": [m.submaps[big].id, m.submaps[big].count, m.submaps[big].kind],
@@ -374,6 +380,12 @@ def report(results: dict, n: int) -> None:
     print(f"{'':44}" + "".join(f"{k:>18}" for k in kinds))
     for name, fn in rows:
         print(f"{name:44}" + "".join(f"{fn(results[k]):>18}" for k in kinds))
+    print("host speed: the 1-submap and largest-submap queries again, each between two probes "
+          "(benchmarks/cpuinfo.py)")
+    fastest = min(split["probe_p5"] for r in results.values() for split in r["host"].values())
+    for kind, r in results.items():
+        for name, split in r["host"].items():
+            print("  " + cpuinfo.host_speed_row(f"{kind}, {name}", split, fastest))
     for kind, r in results.items():
         if not r.get("shapes"):
             continue

@@ -110,9 +110,11 @@ VERIFIED = (("verify_top_k 20", None), ("verify_top_k 20, 1 thread", 1),
             ("verify_top_k 20, matcher before #31", "old"))
 
 
-def timed_paths(map_dir: Path, images: list[np.ndarray], repeat: int) -> tuple[dict, dict]:
+def timed_paths(map_dir: Path, images: list[np.ndarray],
+                repeat: int) -> tuple[dict, dict, list[float]]:
     """Per-query wall times (ms) of every path, interleaved query by query in a random order;
-    and per verified path, each query's (status, answer, inliers)."""
+    per verified path, each query's (status, answer, inliers); and per query, the host-speed
+    probe around its runs (``cpuinfo.paired``'s mean of the probes before and after)."""
     off = LocalizationPipeline.open(map_dir, verification={"top_k": 0})
     off.map.open_submaps()
     paths = {"retrieval only": lambda im: off.localizer.localize(off.describe(im), None),
@@ -129,8 +131,10 @@ def timed_paths(map_dir: Path, images: list[np.ndarray], repeat: int) -> tuple[d
     answers: dict[str, list] = {name: [] for name, _ in VERIFIED}
     names = list(paths)
     rng = random.Random(0)
+    probes: list[float] = []
     for _ in range(repeat):
         for qi, im in enumerate(images):
+            before = cpuinfo.probe_ms()
             rng.shuffle(names)  # a random order per query: no path always follows another
             for name in names:
                 t0 = time.perf_counter()
@@ -139,7 +143,8 @@ def timed_paths(map_dir: Path, images: list[np.ndarray], repeat: int) -> tuple[d
                 if name in answers:
                     t[f"stage: {name}"].append(h.timings_ms.get("verify_ms", math.nan))
                     answers[name].append((qi, h.status, h.ref_id, int(h.inliers or 0)))
-    return t, answers
+            probes.append((before + cpuinfo.probe_ms()) / 2.0)
+    return t, answers, probes
 
 
 def agreement(answers: dict) -> str:
@@ -198,7 +203,7 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         map_dir, images, label = data(Path(tmp), args.map)
         images = images[:args.queries]
-        t, answers = timed_paths(map_dir, images, args.repeat)
+        t, answers, probes = timed_paths(map_dir, images, args.repeat)
         base = med(t["retrieval only"])
         print(f"\nverification cost, {label}; load average {os.getloadavg()[0]:.1f} on "
               f"{os.cpu_count()} CPUs (absolute times inflated by other processes)")
@@ -214,6 +219,10 @@ def main() -> int:
         print(f"  verification stage, same run: {stage:.1f} ms ({threads} threads) vs "
               f"{before:.1f} ms as before issue 31 ({stage / before:.2f}x; 1 thread "
               f"{one / before:.2f}x)")
+        timed = [(x, pr) for x, pr in zip(t[f"stage: {VERIFIED[0][0]}"], probes) if x == x]
+        split = cpuinfo.by_host_speed([x for x, _ in timed], [pr for _, pr in timed])
+        print("  host speed (each query's runs between two probes, benchmarks/cpuinfo.py): "
+              + cpuinfo.host_speed_row("verification stage", split, split["probe_p5"]))
         print(f"  answers vs the stage before issue 31: {agreement(answers)}")
         same = sum(a == b for a, b in zip(answers[VERIFIED[0][0]], answers[VERIFIED[1][0]]))
         print(f"  answers, {threads} threads vs 1 (status, answer, the winner's inliers): "

@@ -14,7 +14,18 @@ whether they can be compared. What is reported is what the libraries themselves 
 * BLAS: ``threadpoolctl.threadpool_info()`` (library, version, kernel architecture, threads),
   else NumPy's build configuration;
 * threads: ``OMP_NUM_THREADS`` / ``OPENBLAS_NUM_THREADS`` / ``MKL_NUM_THREADS`` /
-  ``OMP_WAIT_POLICY`` as set, ``faiss.omp_get_max_threads()``, ``cv2.getNumThreads()``.
+  ``OMP_WAIT_POLICY`` as set, ``faiss.omp_get_max_threads()``, ``cv2.getNumThreads()``;
+* host speed: how long a fixed pure-Python loop (:func:`probe_ms`) takes right now.
+
+Why the host's speed: on a shared virtual machine the same single-threaded work runs at two
+speeds minutes or seconds apart, with no steal time and no load of its own to show for it
+(another tenant on the physical core's other hardware thread). Measured on the AVX-512 EPYC of
+issue 31, in one process, 6,000 queries of the 4.1M map's largest submap each between two
+probes: the probe's 5th percentile 0.117 ms, its median 0.168 ms; the queries next to probes
+within 10 % of the fastest took 1.57 ms (median), those next to probes 1.3x slower or more
+2.48 ms. :func:`paired` times a benchmark's queries between two probes and
+:func:`by_host_speed` splits their median by the probe, so a table says how much of a number is
+the host's state rather than the code's.
 
 ``--cpu-paths native|avx2|generic`` (:func:`apply_cpu_paths`, called by each script before it
 parses its arguments): ``avx2`` emulates an AVX2 machine without AVX-512 (the common x86-64
@@ -29,8 +40,10 @@ from __future__ import annotations
 
 import os
 import platform
+import statistics
 import sys
-from typing import Any
+import time
+from typing import Any, Callable
 
 #: environment per code-path choice (the libraries read it at import)
 CPU_PATHS: dict[str, dict[str, str]] = {
@@ -177,7 +190,7 @@ def describe() -> dict[str, Any]:
             "simd": {"numpy": _numpy(), "faiss": faiss_s, "opencv": cv_s}, "blas": _blas(),
             "threads": {"env": env, "faiss_omp": faiss_t, "cv2": cv_t},
             "load_average": [round(x, 2) for x in os.getloadavg()],
-            "python": platform.python_version()}
+            "python": platform.python_version(), "host_speed": host_speed()}
 
 
 def node_malloc() -> str:
@@ -191,17 +204,94 @@ def node_malloc() -> str:
             f"{malloc.TRIM_THRESHOLD // 2 ** 20} MiB; applied: {applied})")
 
 
+#: steps of the host-speed probe's loop: ~0.1-0.2 ms, short against a state's seconds
+PROBE_STEPS = 4000
+#: a probe within this factor of its run's 5th percentile counts as the host at full speed
+FULL_SPEED = 1.15
+
+
+def probe_ms() -> float:
+    """Milliseconds of a fixed pure-Python loop: the interpreter alone (no memory traffic, no
+    library, no thread), so its time moves only with the speed the host gives this core."""
+    t = time.perf_counter()
+    s = 0
+    for i in range(PROBE_STEPS):
+        s += i
+    return (time.perf_counter() - t) * 1e3
+
+
+def host_speed(n: int = 200) -> dict[str, float]:
+    """The probe's 5th percentile and median (ms) over ``n`` runs now (~30 ms in all)."""
+    ts = sorted(probe_ms() for _ in range(n))
+    return {"steps": PROBE_STEPS, "runs": n, "p5_ms": round(ts[n // 20], 4),
+            "median_ms": round(statistics.median(ts), 4)}
+
+
+def _median(xs: list[float]) -> float:
+    return statistics.median(xs) if xs else float("nan")
+
+
+def paired(run: Callable[[int], Any], n: int, warm: int = 20) -> tuple[list[float], list[float]]:
+    """``run(i)`` for ``i`` in ``range(warm + n)``, each between two probes: (ms of each run,
+    the mean of its two probes), the first ``warm`` runs left out. The probes are outside the
+    timed span; they only tell how fast the host ran around each run."""
+    ms, probes = [], []
+    before = probe_ms()
+    for i in range(warm + n):
+        t = time.perf_counter()
+        run(i)
+        took = (time.perf_counter() - t) * 1e3
+        after = probe_ms()
+        if i >= warm:
+            ms.append(took)
+            probes.append((before + after) / 2.0)
+        before = after
+    return ms, probes
+
+
+def by_host_speed(ms: list[float], probes: list[float]) -> dict[str, float]:
+    """Medians of ``ms`` split by the host's speed around each run: ``full`` where the probe was
+    within :data:`FULL_SPEED` of its 5th percentile, ``contended`` elsewhere (NaN when a side
+    is empty), the share at full speed and the probe's 5th percentile and median. When the
+    whole run was contended, its fastest probes are slow ones: compare ``probe_p5`` with other
+    runs' on the same machine."""
+    if not ms:
+        nan = float("nan")
+        return {"all": nan, "full": nan, "contended": nan, "share_full": nan, "probe_p5": nan,
+                "probe_median": nan}
+    p5 = sorted(probes)[len(probes) // 20]
+    full = [m for m, p in zip(ms, probes) if p <= FULL_SPEED * p5]
+    rest = [m for m, p in zip(ms, probes) if p > FULL_SPEED * p5]
+    return {"all": _median(ms), "full": _median(full), "contended": _median(rest),
+            "share_full": len(full) / len(ms), "probe_p5": p5,
+            "probe_median": statistics.median(probes)}
+
+
+def host_speed_row(label: str, split: dict[str, float], fastest_p5: float) -> str:
+    """One line: a paired run's median, and its medians at full speed and contended; its probe
+    against ``fastest_p5`` (the fastest 5th percentile of the runs in the same table: a run
+    whose own is well above it was contended throughout)."""
+    return (f"{label}: {split['all']:.2f} ms; host at full speed {split['full']:.2f} ms "
+            f"({split['share_full']:.0%} of runs), contended {split['contended']:.2f} ms "
+            f"(probe p5 {split['probe_p5']:.3f} ms = {split['probe_p5'] / fastest_p5:.2f}x the "
+            f"table's fastest, median {split['probe_median']:.3f})")
+
+
 def cpu_line() -> str:
-    """Several lines, '# '-prefixed: CPU, SIMD per library, BLAS, threads, load, code paths."""
+    """Several lines, '# '-prefixed: CPU, SIMD per library, BLAS, threads, load, code paths,
+    the host's speed now."""
     d = describe()
     env = " ".join(f"{k}={v}" for k, v in d["threads"]["env"].items()) or "no thread env set"
     la = " / ".join(f"{x:.2f}" for x in d["load_average"])
+    h = d["host_speed"]
     return "\n".join([
         f"# CPU: {d['cpu']}; code paths: {d['cpu_paths']}; load average {la}",
         f"# SIMD: {d['simd']['numpy']} | {d['simd']['faiss']} | {d['simd']['opencv']}",
         f"# BLAS: {d['blas']}",
         f"# threads: {env}; faiss omp_get_max_threads {d['threads']['faiss_omp']}; "
         f"cv2.getNumThreads {d['threads']['cv2']}",
+        f"# host speed: a {h['steps']:,}-step Python loop {h['p5_ms']:.3f} ms (p5 of "
+        f"{h['runs']}), median {h['median_ms']:.3f} ms",
     ])
 
 
