@@ -49,7 +49,7 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
-from benchmarks import cpuinfo  # noqa: E402
+from benchmarks import cpuinfo, scale_policy  # noqa: E402
 SHARED = Path(os.environ.get("VLM_VPR_SHARED", REPO.parent / "shared"))
 MP16 = SHARED / "data" / "mp16_coords"
 CHUNK = 100_000
@@ -225,7 +225,7 @@ def child(map_dir: str, work: str, n_loop: int, n_global: int) -> None:
         m.search_submaps([big], np.ascontiguousarray(q[i % nq][None, :]), 50)
         search_largest.append((time.perf_counter() - t) * 1e3)
     search_largest = search_largest[20:]
-    shapes = thread_policy(m, loc, big, bp, q, min(200, n_loop))
+    shapes = scale_policy.thread_policy(m, loc, big, bp, q, min(200, n_loop))
     loc3 = Localizer(m, LocalizerConfig(top_p=50, fusion="paper", n_submaps=3))
     timed(loc3, range(50), lambda i: priors[i % nq])
     three = timed(loc3, range(300), lambda i: priors[i % nq])
@@ -256,55 +256,6 @@ def child(map_dir: str, work: str, n_loop: int, n_global: int) -> None:
            "recall1": r1 / len(ex["qidx"]), "recall50": r50 / len(ex["qidx"]),
            "n_submaps": len(m.submaps)}
     print("RESULT " + json.dumps(res), flush=True)
-
-
-#: (name, one FAISS thread per query?, OpenCV re-rank?) compared query by query (issue 31)
-VARIANTS = (("1 thread, OpenCV re-rank (default)", True, True),
-            ("OpenMP default threads, OpenCV re-rank", False, True),
-            ("1 thread, FAISS fp16 decoder re-rank (before #31)", True, False))
-
-
-def thread_policy(m, loc, big: int, bp, q: np.ndarray, n: int = 200) -> dict:
-    """Wall and CPU ms (median) of the largest submap's search alone and of the paper's whole
-    query on it, and of the posterior on the whole map, for each of :data:`VARIANTS`,
-    interleaved query by query (one run: the load hits every variant alike), each query's
-    runs in a random order (seeded): a run right after another of the same query finds its
-    rows in the caches, so a fixed order flatters whatever runs second."""
-    import contextlib
-    import random
-
-    from vlm_vpr_ros.localization.localizer import Localizer, LocalizerConfig
-    from vlm_vpr_ros.maps import indexes, search
-
-    one, cv = search.one_faiss_thread, indexes._cv2
-
-    @contextlib.contextmanager
-    def variant(single: bool, opencv: bool):
-        search.one_faiss_thread = one if single else contextlib.nullcontext
-        indexes._cv2 = cv if opencv else (lambda: None)
-        try:
-            yield
-        finally:
-            search.one_faiss_thread, indexes._cv2 = one, cv
-    post = Localizer(m, LocalizerConfig(top_p=50))
-    shapes = {"search": lambda x: m.search_submaps([big], x[None, :], 50),
-              "paper": lambda x: loc.localize(x, bp),
-              "posterior": lambda x: post.localize(x, None)}
-    out = {f"{s}|{v[0]}": ([], []) for s in shapes for v in VARIANTS}
-    runs = [(shape, v) for shape in shapes for v in VARIANTS]
-    rng = random.Random(0)
-    for i in range(n + 5):
-        x = np.ascontiguousarray(q[i % len(q)])
-        rng.shuffle(runs)
-        for shape, (name, single, opencv) in runs:
-            with variant(single, opencv):
-                w, c = time.perf_counter(), time.thread_time()
-                shapes[shape](x)
-                c, w = time.thread_time() - c, time.perf_counter() - w
-            if i >= 5:  # warm-up
-                out[f"{shape}|{name}"][0].append(w * 1e3)
-                out[f"{shape}|{name}"][1].append(c * 1e3)
-    return {k: [statistics.median(w), statistics.median(c)] for k, (w, c) in out.items()}
 
 
 def exact_top(map_dir: Path, work: Path, n_recall: int) -> None:
@@ -387,18 +338,8 @@ def report(results: dict, n: int) -> None:
         for name, split in r["host"].items():
             print("  " + cpuinfo.host_speed_row(f"{kind}, {name}", split, fastest))
     for kind, r in results.items():
-        if not r.get("shapes"):
-            continue
-        print(f"\n{kind}: thread policy and re-rank, same process, queries interleaved in a "
-              f"random order "
-              f"(largest submap {r['largest'][0]}, {r['largest'][1]:,} refs, {r['largest'][2]};"
-              f" posterior: no prior, the whole map)")
-        print(f"  {'shape':<11}{'variant':<52}{'wall ms':>9}{'cpu ms':>9}{'/ default':>11}")
-        for shape in ("search", "paper", "posterior"):
-            base = r["shapes"][f"{shape}|{VARIANTS[0][0]}"][0]
-            for name, _, _ in VARIANTS:
-                w, c = r["shapes"][f"{shape}|{name}"]
-                print(f"  {shape:<11}{name:<52}{w:>9.2f}{c:>9.2f}{w / base:>10.2f}x")
+        if r.get("shapes"):
+            scale_policy.print_table(kind, r)
     med = statistics.median
     for base in ("flat", "fp16"):
         if "pq" in results and base in results:
