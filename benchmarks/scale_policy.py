@@ -4,6 +4,8 @@ over the whole map, for each of :data:`VARIANTS`, and the table that prints them
 
 from __future__ import annotations
 
+import contextlib
+import random
 import statistics
 import time
 
@@ -21,9 +23,8 @@ def thread_policy(m, loc, big: int, bp, q: np.ndarray, n: int = 200) -> dict:
     interleaved query by query (one run: the load hits every variant alike), each query's
     runs in a random order (seeded): a run right after another of the same query finds its
     rows in the caches, so a fixed order flatters whatever runs second."""
-    import contextlib
-    import random
-
+    # the package is imported in the query process only: bench_scale times its import as
+    # part of the map's opening (open_s), which importing it with this module would hide
     from vlm_vpr_ros.localization.localizer import Localizer, LocalizerConfig
     from vlm_vpr_ros.maps import indexes, search
 
