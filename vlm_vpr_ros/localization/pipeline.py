@@ -50,7 +50,7 @@ def verify_and_stamp(hyp: Hypothesis, local: LocalFeatures | None, verifier: Ver
         model = localizer.error_model_for(hyp.prior) if hyp.prior is not None else None
         def weigh(h: Hypothesis) -> None:  # a prior with its own sigma: weight + guard
             if prior_trust.applies(h, policy):
-                prior_trust.weigh_trusted_prior(h)
+                prior_trust.weigh_trusted_prior(h, evidence=verifier.evidence)
 
         verifier.verify(hyp, local, model, trust_prior=policy.trusts(hyp),
                         level=policy.fix_min_p_correct, radii_calibrated=calibrated,

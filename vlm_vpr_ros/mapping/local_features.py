@@ -24,7 +24,9 @@ from vlm_vpr_ros.config import from_mapping
 from vlm_vpr_ros.errors import ImageDecodeError, MapError
 from vlm_vpr_ros.files.images import decode_image_bytes
 from vlm_vpr_ros.localization.verification.components import create_feature, create_matcher
-from vlm_vpr_ros.localization.verification.p_correct import load_doc, loo_calibration, save_doc
+from vlm_vpr_ros.localization.verification.p_correct import (NOISE_MIN_DISTANCE_M, NOISE_PAIRS,
+                                                             load_doc, loo_calibration,
+                                                             noise_level, noise_pairs, save_doc)
 from vlm_vpr_ros.localization.verification.conditions import parse_condition, parse_conditions
 from vlm_vpr_ros.localization.verification.evidence import EvidenceConfig
 from vlm_vpr_ros.localization.verification.geometry import GeometryConfig, fundamental_inliers
@@ -199,8 +201,18 @@ def calibrate_map(ref_map: Any, max_queries: int = LOO_QUERIES, top_k: int = 20,
 
         bar = tqdm(desc="verification calibration", unit="query", disable=None, leave=False)
     with one_blas_thread():
+        # the matcher's noise level on unrelated pairs: the competitor floor of the evidence
+        pairs = noise_pairs(coords, NOISE_PAIRS, NOISE_MIN_DISTANCE_M,
+                            np.random.default_rng(seed + 1))
+        noise = noise_level([int(inliers_of(features_of(i), [features_of(j)])[0])
+                             for i, j in pairs])
+        if not pairs:
+            log.warning("%s: no two references %.0f m apart: the %s matcher's noise level is "
+                        "not measured (competitor floor %d)", ref_map.path,
+                        NOISE_MIN_DISTANCE_M, preset.matcher, noise["floor"])
+        cfg = EvidenceConfig(competitor_floor=noise["floor"])
         doc = loo_calibration(coords, search, features_of, inliers_of, top_k,
-                              EvidenceConfig(), max_queries, seed,
+                              cfg, max_queries, seed,
                               (lambda d, n: bar.update(1)) if bar is not None else None,
                               conds, degraded, n_deg,
                               copies_of=lambda g: copies.get(g, ()))
@@ -209,6 +221,7 @@ def calibrate_map(ref_map: Any, max_queries: int = LOO_QUERIES, top_k: int = 20,
     doc["min_long_side_px"] = int(smallest[0]) if smallest else 0
     doc["feature"] = store.feature
     doc["preset"] = store.preset
+    doc["noise"] = noise
     save_doc(ref_map, doc)
     loo = doc["loo"]
     log.info("verification calibration: %d leave-one-out queries (%d wrong, %d right) under "
