@@ -1,6 +1,8 @@
-"""Learned local features (DISK + LightGlue via kornia): the loading code reads official-layout
-checkpoints with ``torch.load(weights_only=True)`` from local files — tested on weights made
-here (random, not trained), never downloaded; missing or foreign files are clear errors."""
+"""Learned local features (DISK + LightGlue via kornia) from a file the user names
+(``weights=PATH``): the loading code reads official-layout checkpoints with
+``torch.load(weights_only=True)`` — tested on weights made here (random, not trained), never
+downloaded; missing or foreign files are clear errors. The shipped weights (the default) are
+tested in test_learned_presets.py."""
 
 from __future__ import annotations
 
@@ -13,6 +15,16 @@ KF = pytest.importorskip("kornia.feature")
 from vlm_vpr_ros.errors import DescriptorError  # noqa: E402
 from vlm_vpr_ros.localization.verification.components import create_feature, create_matcher  # noqa
 from vlm_vpr_ros.localization.verification.learned import LIGHTGLUE_DISK  # noqa: E402
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_torch_thread():
+    """torch on one thread while this module runs: its OpenMP threads spin while they wait,
+    which on a loaded 2-core host made each model call ~10x slower (bench_learned.py)."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
 
 
 @pytest.fixture(scope="module")
@@ -69,7 +81,7 @@ def test_missing_garbage_and_foreign_checkpoints_are_clear_errors(weights, tmp_p
         create_feature("disk", {"weights": str(d / "disk_lightglue.pth")})
 
 
-def test_a_disk_lightglue_map_end_to_end(weights, demo_data, tmp_path):
+def test_a_disk_lightglue_map_end_to_end(weights, demo_data, tmp_path, caplog):
     """build-map with --local-features disk_lightglue stores float16 DISK features (with the
     checkpoint's sha256, never its path), and queries verify with LightGlue."""
     from test_verification_maps import first_rows
@@ -86,7 +98,8 @@ def test_a_disk_lightglue_map_end_to_end(weights, demo_data, tmp_path):
               descriptor_config={"max_side": 160, "n_words": 8, "pca_dim": 5}, clusters=2,
               progress=False, local_features="disk_lightglue",
               feature_options={"weights": str(d / "depth-save.pth"), "max_side": 128},
-              matcher_options={"weights": str(d / "disk_lightglue.pth")})
+              matcher_options={"weights": str(d / "disk_lightglue.pth")},
+              calibration_conditions="full")
     ref = ReferenceMap.load(m)
     sec = ref.manifest["local_features"]
     assert sec["preset"] == "disk_lightglue" and sec["feature"]["dtype"] == "float16"
@@ -98,6 +111,12 @@ def test_a_disk_lightglue_map_end_to_end(weights, demo_data, tmp_path):
         "matcher_options": {"weights": str(d / "disk_lightglue.pth")}})
     h = pipe.localize_image(load_image(demo_data / "images" / rows[2]["file"]))
     assert h.verification == "verified" and h.inliers >= 0 and h.status in ("fix", "no_fix")
-    # without the checkpoints at query time: a warning and unverified answers, never a crash
+    # without the options at query time the shipped DISK is loaded (never another file), whose
+    # sha256 differs from the map's features': said at open, never silently
+    caplog.set_level("WARNING")
     pipe = LocalizationPipeline.open(m)
-    assert not pipe.verifier.enabled and "checkpoint" in pipe.verifier.unavailable
+    if pipe.verifier.enabled:
+        assert pipe.verifier.extractor.weights_sha256 != sec["feature"]["weights_sha256"]
+        assert "another checkpoint" in caplog.text
+    else:
+        assert "checkpoint" in pipe.verifier.unavailable

@@ -4,7 +4,9 @@ A *local feature* turns an RGB image into keypoints + descriptors (:class:`Local
 *matcher* pairs the features of two images; the geometry check (:mod:`.geometry`) keeps the
 matches consistent with one epipolar geometry. Both are registered by name (hloc style): an
 unknown name is a :class:`~vlm_vpr_ros.errors.ConfigError` listing the choices. Learned ones
-(:mod:`.learned`) register themselves from a module that imports torch only when asked for.
+(:mod:`.learned`: ``disk``, ``aliked``, ``lightglue``, ``lighterglue``; :mod:`.learned_xfeat`:
+``xfeat``, ``mnn``) register themselves from modules that import torch only when one is
+created.
 """
 
 from __future__ import annotations
@@ -81,7 +83,8 @@ _FEATURES: dict[str, Component] = {}
 _MATCHERS: dict[str, Component] = {}
 #: modules whose import registers components (learned ones need torch + kornia: lazy)
 _PROVIDERS = ("vlm_vpr_ros.localization.verification.sift",
-              "vlm_vpr_ros.localization.verification.learned")
+              "vlm_vpr_ros.localization.verification.learned",
+              "vlm_vpr_ros.localization.verification.learned_xfeat")
 _loaded = False
 
 
@@ -99,7 +102,7 @@ def _load() -> None:
     global _loaded
     if not _loaded:
         for mod in _PROVIDERS:
-            importlib.import_module(mod)  # learned.py imports torch only when used
+            importlib.import_module(mod)  # learned*.py import torch only when used
         _loaded = True
 
 
