@@ -159,6 +159,11 @@ class LocalizationPipeline:
             local = v.query_features_from_sift(sift_pass)
             return QueryDescription(desc, local, {"descriptor_ms":
                                                   (time.perf_counter() - t0) * 1e3})
+        if v is not None and v.reuses_xfeat_of(self.descriptor):  # one XFeat pass for both
+            k = v.preset.query_max_keypoints
+            desc, xfeat_pass = self.descriptor.describe_with_xfeat(image, k)
+            return QueryDescription(desc, xfeat_pass.head(k), {
+                "descriptor_ms": (time.perf_counter() - t0) * 1e3})
         desc = self.describe(image)
         t1 = time.perf_counter()
         local = v.query_features(image) if v is not None and v.enabled else None

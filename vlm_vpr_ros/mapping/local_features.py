@@ -2,7 +2,8 @@
 calibration (images: ``build-map``; bags: ``build-map --bag``; ``map add/remove``; Ray).
 
 * :class:`ReferenceExtractor`: the global descriptor and the local features of reference
-  images, in one SIFT pass for vlad_rootsift maps with the ``sift`` preset.
+  images, in one SIFT pass for vlad_rootsift maps with the ``sift`` preset and one XFeat pass
+  for vlad_xfeat maps verified with XFeat (``xfeat_mnn``, ``xfeat_lighterglue``).
 * :func:`store_features`: write a saved map's feature files (:mod:`vlm_vpr_ros.maps.features`)
   from the features of each reference id.
 * :func:`calibrate_map`: the leave-one-out calibration of ``p_correct``
@@ -75,6 +76,10 @@ class ReferenceExtractor:
                        and cfg.get("max_side") == vc.max_side
                        and cfg.get("contrast_threshold") == 0.04
                        and cfg.get("edge_threshold") == 10.0)
+        #: a vlad_xfeat map verified with XFeat: one XFeat pass per image serves both
+        self.shared_xfeat = (self.preset is not None and self.preset.feature == "xfeat"
+                             and hasattr(descriptor, "describe_with_xfeat")
+                             and descriptor.xfeat.identity() == self.extractor.identity())
 
     @property
     def enabled(self) -> bool:
@@ -97,6 +102,10 @@ class ReferenceExtractor:
                 out.append(d)
                 feats.append(RootSift.from_pass(xy, des, resp, size, scale, k))
             return np.stack(out).astype(np.float32), feats
+        if self.shared_xfeat:
+            pairs = [self.descriptor.describe_with_xfeat(im, k) for im in images]
+            return (np.stack([d for d, _ in pairs]).astype(np.float32),
+                    [f.head(k) for _, f in pairs])
         return (self.descriptor.describe(images),
                 [self.extractor.extract(im, k) for im in images])
 
@@ -280,6 +289,8 @@ def _degraded_queries(ref_map: Any, conds: Sequence[str], images_dir: str | Path
     if not verifier.enabled:
         return None, []
     shared = verifier.reuses_sift_of(descriptor)
+    shared_xfeat = verifier.reuses_xfeat_of(descriptor)
+    k_query = verifier.preset.query_max_keypoints
     ids = ref_map.all_ids()
     smallest: list[int] = []
 
@@ -304,6 +315,9 @@ def _degraded_queries(ref_map: Any, conds: Sequence[str], images_dir: str | Path
             if shared:
                 desc, sift_pass = descriptor.describe_with_sift(frame)
                 local = verifier.query_features_from_sift(sift_pass)
+            elif shared_xfeat:
+                desc, local = descriptor.describe_with_xfeat(frame, k_query)
+                local = local.head(k_query)
             else:
                 desc, local = descriptor.describe_one(frame), verifier.query_features(frame)
             vec = np.asarray(desc, np.float32).reshape(1, -1)
