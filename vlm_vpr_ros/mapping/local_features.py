@@ -211,10 +211,12 @@ def calibrate_map(ref_map: Any, max_queries: int = LOO_QUERIES, top_k: int = 20,
         bar = tqdm(desc="verification calibration", unit="query", disable=None, leave=False)
     with one_blas_thread():
         # the matcher's noise level on unrelated pairs: the competitor floor of the evidence
+        t_noise = time.monotonic()
         pairs = noise_pairs(coords, NOISE_PAIRS, NOISE_MIN_DISTANCE_M,
                             np.random.default_rng(seed + 1))
         noise = noise_level([int(inliers_of(features_of(i), [features_of(j)])[0])
                              for i, j in pairs])
+        noise["seconds"] = round(time.monotonic() - t_noise, 1)
         if not pairs:
             log.warning("%s: no two references %.0f m apart: the %s matcher's noise level is "
                         "not measured (competitor floor %d)", ref_map.path,
