@@ -19,9 +19,10 @@ wait for them (ros/requests.py); on SIGINT / SIGTERM the node does the same whil
 still spins (rclpy's own signal handler is off: it would invalidate the context first, and a
 goal could then no longer be ended).
 
-The plain node runs load + start in its constructor. Callback groups: images, the map_reload
-service and the diagnostics timer each have their own mutually exclusive group, the relocalize
-services one reentrant group, under a MultiThreadedExecutor with a thread for each relocalize
+The plain node runs load + start in its constructor. Callback groups: images and the
+diagnostics timer each have their own mutually exclusive group, the relocalize services and
+action one reentrant group, map_reload its own reentrant one (one reload at a time, others
+answered at once), under a MultiThreadedExecutor with a thread for each relocalize
 caller that may wait (``MAX_WAITERS``) on top of the four the other callbacks need; queries run
 on the runtime's worker thread, so a slow VLM never delays image intake and waiting callers
 never block the executor.
