@@ -226,6 +226,9 @@ def _run(cls: type, args: list[str] | None) -> int:
         node = cls(requested)
     except VlmVprError as exc:
         return _fatal(logger, exc)
+    except KeyboardInterrupt:  # SIGINT while the map loads (Python's handler until ours)
+        rclpy.try_shutdown()
+        return 0
     executor = MultiThreadedExecutor(num_threads=EXECUTOR_THREADS)
     executor.add_node(node)
     signals: list[int] = []
