@@ -118,6 +118,24 @@ CATALOGUE: dict[str, tuple[str, str, str]] = {
     "node_relocalize_burst": ("node", "300 relocalize calls in a burst, VLM hung",
                               "every call answered; one shared VLM query; canary not in "
                               "the node log"),
+    "node_request_burst": ("node", "`relocalize` action goals and `relocalize_typed` calls "
+                                   "sent at once (40 + 40; 100 + 100 in bench_requests.py)",
+                           "every caller answered: a result, or OUTCOME_BUSY at once beyond "
+                           "the 32 waiting callers admitted"),
+    "node_timeout_unbounded": ("node", "`timeout_s` 1e300 on the action and the typed service",
+                               "goal rejected (WARN with the reason); service OUTCOME_REJECTED "
+                               "naming the 3600 s bound"),
+    "node_shutdown_goal_waiting": ("node", "lifecycle `shutdown` while goals wait for a frame",
+                                   "each goal ABORTED, OUTCOME_NOT_ACTIVE 'shutting down', "
+                                   "before the process exits 0"),
+    "node_sigint_goal_waiting": ("node", "SIGINT to the plain node while goals wait",
+                                 "each goal ABORTED, OUTCOME_NOT_ACTIVE; no traceback; exit 0"),
+    "node_shared_timeout_message": ("node", "a goal (1.5 s) and a typed call (20 s) share one "
+                                            "request; the goal times out",
+                                    "the goal hears the answer may still be published for the "
+                                    "other caller, never that it will not be"),
+    "node_map_reload_burst": ("node", "30 `map_reload` calls at once",
+                              "every call answered: a reload, or 'busy' at once while one runs"),
     # -- writers: one lock per map, describe output safety (issue 19) --------------------------
     "lock_build_during_add": ("writers", "`build-map --overwrite MAP` while `map add MAP` is "
                                          "writing", "build waits, then exit 2 naming the "
