@@ -65,3 +65,25 @@ def test_a_flipped_byte_in_a_bag_we_made_is_detected(made_bag, tmp_path):
     bag = open_bag(flipped)
     n = sum(1 for _ in bag.messages())
     assert not bag.complete and n < full, (n, bag.problems)
+
+
+def test_ground_truth_with_a_wide_covariance_is_left_out(tmp_path, caplog):
+    import logging
+
+    from vlm_vpr_ros.bags.frames import MAX_GT_SIGMA_M, read_ground_truth
+    from vlm_vpr_ros.bags.messages import NAVSATFIX, navsatfix_msg
+    from vlm_vpr_ros.bags.writer import BagWriter, qos_profile
+
+    sigmas = [3.0, 1e6, None, MAX_GT_SIGMA_M, 1e6, 250.0]
+    with BagWriter(tmp_path / "gt") as w:
+        w.add_topic("/gps/fix", NAVSATFIX, [qos_profile()])
+        for k, s in enumerate(sigmas):
+            w.write("/gps/fix", navsatfix_msg(37.0 + k * 1e-4, -122.0, 10**18 + k * 10**8,
+                                              sigma_m=s), 10**18 + k * 10**8)
+    with caplog.at_level(logging.WARNING, logger="vlm_vpr_ros.bags.frames"):
+        gt = read_ground_truth(open_bag(tmp_path / "gt"), "/gps/fix")
+    # kept: 3 m, an unknown covariance (most GPS topics), exactly the limit
+    assert [round((a - 37.0) / 1e-4) for a in gt.lat] == [0, 2, 3]
+    assert gt.too_uncertain == 3 and gt.rejected == 0
+    lines = [r.getMessage() for r in caplog.records]
+    assert len(lines) == 1 and "3 fix(es)" in lines[0] and "1e+06 m" in lines[0]
