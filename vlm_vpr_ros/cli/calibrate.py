@@ -31,7 +31,7 @@ MIN_ROWS = 10
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "calibrate", help="calibrate a map's uncertainty radii on labelled queries",
-        description="Conformal calibration of the 68 %% / 95 %% radii from a results CSV of "
+        description="Conformal calibration of the 68 % / 95 % radii from a results CSV of "
                     "'vlm-vpr localize' on this map and its ground truth; stored in the map's "
                     "calibration.json (docs/fusion.md).")
     p.add_argument("--results", metavar="RESULTS.csv",
