@@ -14,9 +14,10 @@ Junk (:data:`JUNK`): a latitude/longitude that is not a plain number or out of r
 file scored already (the first row counts). Junk rows are counted by reason, logged with the
 first ``file:line``, and left out of every number. An empty estimate is not junk: it is a
 query without an answer (a miss). A file of 0 rows (a header only), results or ground truth,
-is a DataError saying so, as for every other empty input. ``--results`` and ``--ground-truth`` naming one file is
-refused (results scored against themselves). ``flagged`` counts rows with a fallback flag
-(:data:`vlm_vpr_ros.types.FALLBACK_FLAGS`, the node's meaning), not ``verified`` alone.
+is a DataError saying so, as for every other empty input. ``--results`` and
+``--ground-truth`` naming one file is refused (results scored against themselves).
+``flagged`` counts rows with a fallback flag (:data:`vlm_vpr_ros.types.FALLBACK_FLAGS`, the
+node's meaning), not ``verified`` alone.
 """
 
 from __future__ import annotations

@@ -18,7 +18,6 @@ from typing import Any
 
 import numpy as np
 
-from vlm_vpr_ros.errors import PriorError
 from vlm_vpr_ros.geodesy import MAX_DISTANCE_KM
 from vlm_vpr_ros.redact import redact
 
@@ -57,14 +56,6 @@ class Prior:
     #: the provider's own error scale (km, 1-sigma of a 2-D Gaussian-like error) when it has
     #: one; None: the fusion uses the fitted VLM error model of the source (docs/fusion.md)
     sigma_km: float | None = None
-
-    def __post_init__(self) -> None:
-        # the backstop of :func:`prior_sigma_problem`: the entry points check first and say
-        # where a bad sigma came from; no prior with one reaches the error model
-        if self.sigma_km is not None:
-            why = prior_sigma_problem(self.sigma_km)
-            if why:
-                raise PriorError(f"prior from {self.source}: sigma {why}")
 
 
 @dataclass(frozen=True)

@@ -14,8 +14,8 @@ than ``max_age_s`` is *stale*: not used. Its sigma passes the one check of every
 (:func:`~vlm_vpr_ros.priors.provider.prior_sigma_problem`, docs/priors.md) with a tighter top:
 an estimate whose sigma, as sent or grown with age, is above ``MAX_PRIOR_SIGMA_M`` (1000 km) is
 *too uncertain*: not used, like a stale one (never clamped: a clamped sigma would be a lie),
-and a sigma under 1 cm (no source is more precise) is raised to 1 cm. The prior provider the node also has (the VLM, a fixed
-hint, ...) is the fallback, in the order ``order`` says:
+and a sigma under 1 cm (no source is more precise) is raised to 1 cm. The prior provider the
+node also has (the VLM, a fixed hint, ...) is the fallback, in the order ``order`` says:
 
 * ``topic_first``: the robot's estimate while it is fresh, else the provider;
 * ``provider_first``: the provider, and the robot's estimate when the provider gives none
