@@ -322,6 +322,6 @@ def _check_ablation_out(out: Path, folders: list, files: list) -> None:
     check_not_inside(out, files, allow_out_inside=True)
     inputs = [i for i in folders + files if i]
     js = out / "ablation.json"
-    check_file_output(js, "--out", inputs, _is_ablation_json, "ablation.json")
+    check_file_output(js, "--out", inputs, _is_ablation_json, "an ablation.json")
     check_file_output(out / "ablation_top_p.png", "--out", inputs,
-                      lambda p: _is_ablation_json(js), "ablation plot")
+                      lambda p: _is_ablation_json(js), "an ablation plot")

@@ -18,7 +18,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     alert_m = integrity.check_alert_limit(args.alert_limit_m)
     if args.geojson:  # before any work: never over an input or a file of the user's
         check_file_output(args.geojson, "--geojson", [args.results, args.ground_truth],
-                          is_results_geojson, "GeoJSON")
+                          is_results_geojson, "a GeoJSON")
     summary, extra = evaluate_results_csv(args.results, args.ground_truth)
     if args.geojson:
         from vlm_vpr_ros.evaluation.metrics import read_ground_truth

@@ -57,11 +57,11 @@ def _csv_header(path: Path) -> list[str]:
 
 def check_file_output(out: str | os.PathLike[str], what: str,
                       inputs: Iterable[str | os.PathLike[str] | None] = (),
-                      ours: Callable[[Path], bool] | None = None, kind: str = "file") -> bool:
+                      ours: Callable[[Path], bool] | None = None, kind: str = "a file") -> bool:
     """Before any work, the one check of every single-file output (a details CSV, a GeoJSON,
     an ablation's JSON): OutputError (one line, file untouched) when ``out`` is one of
     ``inputs`` (the same file by any path, links included), is a folder, or exists and is not
-    a ``kind`` this command wrote (``ours(path)`` False; None: no existing file is ours). An
+    ``kind`` this command wrote (``ours(path)`` False; None: no existing file is ours). An
     output of ours is replaced. Returns whether ``out`` exists."""
     p = Path(out)
     for inp in inputs:
@@ -77,7 +77,7 @@ def check_file_output(out: str | os.PathLike[str], what: str,
     if not os.path.lexists(p):
         return False
     if ours is None or not ours(p):
-        raise OutputError(f"{what} {out} exists and is not a {kind} this command wrote; it is "
+        raise OutputError(f"{what} {out} exists and is not {kind} this command wrote; it is "
                           "left untouched: choose another file")
     return True
 
@@ -85,7 +85,7 @@ def check_file_output(out: str | os.PathLike[str], what: str,
 def check_csv_output(out: str | os.PathLike[str], columns: list[str], what: str,
                      inputs: Iterable[str | os.PathLike[str] | None] = ()) -> None:
     """:func:`check_file_output` of a CSV with ``columns`` (one written before is ours)."""
-    check_file_output(out, what, inputs, lambda p: _csv_header(p) == list(columns), "CSV")
+    check_file_output(out, what, inputs, lambda p: _csv_header(p) == list(columns), "a CSV")
 
 
 def written_by_us(path: Path, kind: str) -> bool:
