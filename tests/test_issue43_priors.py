@@ -114,3 +114,23 @@ def test_a_tiny_robot_sigma_is_raised_to_the_floor():
 def test_config_stays_strict():
     with pytest.raises(ConfigError):
         TopicPriorConfig(growth_m_per_s=math.inf)
+
+
+class NoneProvider(PriorProvider):
+    name = "none"
+
+    def _compute(self, query):
+        return PriorResult.failure(self.name, "disabled")
+
+
+@pytest.mark.parametrize("order", ["topic_first", "provider_first"])
+def test_an_answer_without_a_prior_says_the_robots_was_too_uncertain(order):
+    clock = Clock(100_000.0)
+    p = TopicPrior(NoneProvider(), TopicPriorConfig(growth_m_per_s=1000.0, max_age_s=86_400.0,
+                                                    order=order), clock)
+    p.update(RobotEstimate(37.77, -122.42, 30.0, clock.t - 1.0, "navsat"))
+    clock.t += 29_999.0
+    res = p.request(PriorQuery()).result(timeout=5)
+    assert not res.ok and res.reason.startswith("disabled; topic: too uncertain")
+    p2 = TopicPrior(NoneProvider(), TopicPriorConfig(order=order), clock)
+    assert p2.request(PriorQuery()).result(timeout=5).reason == "disabled"  # no estimate

@@ -44,6 +44,7 @@ from vlm_vpr_ros.priors.provider import (MIN_PRIOR_SIGMA_KM, Prior, PriorProvide
 
 log = logging.getLogger(__name__)
 ORDERS = ("topic_first", "provider_first")
+TOO_UNCERTAIN = "too uncertain"
 #: a sigma above this (m) is no prior worth the name (an uninitialised filter says 1e9); inside
 #: every prior's range (provider.MAX_PRIOR_SIGMA_KM, half the Earth's circumference)
 MAX_PRIOR_SIGMA_M = 1.0e6
@@ -126,6 +127,15 @@ def grown_sigma_m(est: RobotEstimate, now_s: float, growth_m_per_s: float) -> fl
     return est.sigma_m + growth_m_per_s * max(0.0, now_s - est.stamp_s)
 
 
+def _with_topic_reason(res: PriorResult, own: PriorResult) -> PriorResult:
+    """The provider's failure, saying also that the robot's estimate was refused as too
+    uncertain (an answer without a prior must not hide that the robot had one)."""
+    if not own.reason.startswith(TOO_UNCERTAIN):
+        return res
+    return PriorResult(None, res.source, f"{res.reason}; topic: {own.reason}", res.latency_s,
+                       res.raw_text, res.extra)
+
+
 def _kind(why: str) -> str:
     """The kind of a problem: its text without the numbers (one WARN per kind)."""
     return re.sub(r"\(?[-+]?(?:\d[\d.e+-]*|nan|inf)\)?", "#", why)
@@ -186,7 +196,7 @@ class TopicPrior(PriorProvider):
             return None, f"stale ({age:.0f} s old)"
         sigma = grown_sigma_m(est, now, self.config.growth_m_per_s)
         if sigma > MAX_PRIOR_SIGMA_M:
-            return None, (f"too uncertain (sigma grown to {sigma / 1000.0:.0f} km in "
+            return None, (f"{TOO_UNCERTAIN} (sigma grown to {sigma / 1000.0:.0f} km in "
                           f"{age:.0f} s, more than {MAX_PRIOR_SIGMA_M / 1000.0:g} km)")
         sigma_km = max(sigma / 1000.0, MIN_PRIOR_SIGMA_KM)  # the floor of every prior's sigma
         return Prior(est.lat, est.lon, f"{self.name}:{est.source}", sigma_km), ""
@@ -199,13 +209,15 @@ class TopicPrior(PriorProvider):
         return PriorResult(prior, self.name, extra={"sigma_m": prior.sigma_km * 1000.0})
 
     def request(self, query: PriorQuery) -> "cf.Future[PriorResult]":
+        first = None
         if self.config.order == "topic_first":
-            own = self._own()
-            if own.ok:
+            first = self._own()
+            if first.ok:
                 fut: cf.Future[PriorResult] = cf.Future()
-                fut.set_result(own)
+                fut.set_result(first)
                 return fut
-            return self.fallback.request(query)
+            if not first.reason.startswith(TOO_UNCERTAIN):
+                return self.fallback.request(query)
         out: cf.Future[PriorResult] = cf.Future()
         inner = self.fallback.request(query)
 
@@ -215,8 +227,8 @@ class TopicPrior(PriorProvider):
             except BaseException as exc:  # noqa: BLE001 - includes CancelledError
                 res = PriorResult.failure(self.fallback.name, f"error: {exc!r}")
             if not res.ok:
-                own = self._own()
-                res = own if own.ok else res
+                own = first or self._own()
+                res = own if own.ok else _with_topic_reason(res, own)
             if not out.done():
                 out.set_result(res)
 
