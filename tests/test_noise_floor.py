@@ -31,6 +31,15 @@ def test_pairs_are_distinct_far_apart_and_reproducible():
         assert d >= 250.0 and i != j
 
 
+def test_copies_of_one_photo_are_never_a_pair():
+    coords = _grid(6, 0.01)  # 1.1 km steps: every pair is far enough
+    twins = {0: (3,), 3: (0,), 1: (4,), 4: (1,)}  # the same photo at two places
+    pairs = noise_pairs(coords, 100, 250.0, np.random.default_rng(1),
+                        copies_of=lambda g: twins.get(g, ()))
+    assert len(pairs) == 15 - 2  # every pair of 6 rows but the two copies
+    assert not {(0, 3), (1, 4)} & {(min(i, j), max(i, j)) for i, j in pairs}
+
+
 def test_no_pairs_on_a_map_smaller_than_the_distance():
     coords = _grid(30, 0.0001)  # 11 m steps: the whole map spans 322 m
     pairs = noise_pairs(coords, 20, 1000.0, np.random.default_rng(0))

@@ -213,7 +213,8 @@ def calibrate_map(ref_map: Any, max_queries: int = LOO_QUERIES, top_k: int = 20,
         # the matcher's noise level on unrelated pairs: the competitor floor of the evidence
         t_noise = time.monotonic()
         pairs = noise_pairs(coords, NOISE_PAIRS, NOISE_MIN_DISTANCE_M,
-                            np.random.default_rng(seed + 1))
+                            np.random.default_rng(seed + 1),
+                            copies_of=lambda g: copies.get(g, ()))
         noise = noise_level([int(inliers_of(features_of(i), [features_of(j)])[0])
                              for i, j in pairs])
         noise["seconds"] = round(time.monotonic() - t_noise, 1)

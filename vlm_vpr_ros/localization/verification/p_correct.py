@@ -161,9 +161,13 @@ Degraded = Callable[[int], Mapping[str, tuple[list[tuple[float, int]], LocalFeat
 
 
 def noise_pairs(coords: np.ndarray, n: int, min_distance_m: float,
-                rng: np.random.Generator) -> list[tuple[int, int]]:
+                rng: np.random.Generator,
+                copies_of: Callable[[int], Collection[int]] | None = None
+                ) -> list[tuple[int, int]]:
     """Up to ``n`` distinct random pairs of rows at least ``min_distance_m`` apart (unrelated
-    views: their inliers are the matcher's noise); fewer on a map without such pairs."""
+    views: their inliers are the matcher's noise); fewer on a map without such pairs.
+    ``copies_of(row)``: rows holding the same photograph (a look-alike copy far away is no
+    unrelated view: it matches with every keypoint), never paired."""
     m = len(coords)
     if m < 2:
         return []
@@ -172,7 +176,7 @@ def noise_pairs(coords: np.ndarray, n: int, min_distance_m: float,
     for _ in range(20 * n):
         i, j = (int(v) for v in rng.choice(m, size=2, replace=False))
         key = (min(i, j), max(i, j))
-        if key in seen:
+        if key in seen or (copies_of is not None and j in copies_of(i)):
             continue
         seen.add(key)
         d = float(haversine_km(coords[i, 0], coords[i, 1], coords[j, 0], coords[j, 1])) * 1e3
