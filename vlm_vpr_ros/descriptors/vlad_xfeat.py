@@ -38,7 +38,7 @@ log = logging.getLogger(__name__)
 #: XFeat's descriptor dimension
 LOCAL_DIM = 64
 #: options that do not change the descriptor (not in the map's identity)
-RUNTIME_KEYS = ("device",)
+RUNTIME_KEYS = ("device", "threads")
 
 
 @dataclass(frozen=True)
@@ -58,12 +58,15 @@ class VladXFeatConfig:
     seed: int = 0
     #: "cpu", or "cuda" / "cuda:N" where CUDA is available (not part of the map's identity)
     device: str = "cpu"
+    #: torch threads of the XFeat pass (0: torch's own; not part of the map's identity):
+    #: one, since torch's default team spins on a busy 2-core machine (local_xfeat)
+    threads: int = 1
 
     def __post_init__(self) -> None:
         """Every value in range before any work (one line, not a failure after the build)."""
         ints = {"max_side": (64, 8192), "n_keypoints": (1, 100_000), "n_words": (2, 4096),
                 "fit_max_images": (2, 10_000_000), "fit_max_features": (8, 100_000_000),
-                "seed": (0, 2 ** 32 - 1)}
+                "seed": (0, 2 ** 32 - 1), "threads": (0, 64)}
         for name, (lo, hi) in ints.items():
             v = getattr(self, name)
             if not isinstance(v, int) or isinstance(v, bool) or not lo <= v <= hi:
@@ -108,7 +111,8 @@ class VladXFeat(GlobalDescriptor):
         self.cfg = from_mapping(VladXFeatConfig, config, name)
         super().__init__(asdict(self.cfg))
         self.name = name
-        self.xfeat = XFeatExtractor(max_side=self.cfg.max_side, device=self.cfg.device)
+        self.xfeat = XFeatExtractor(max_side=self.cfg.max_side, device=self.cfg.device,
+                                    threads=self.cfg.threads)
         self.centroids: np.ndarray | None = None
 
     # -- interface ---------------------------------------------------------------------------
