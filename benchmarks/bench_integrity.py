@@ -41,7 +41,7 @@ from vlm_vpr_ros.localization.verification.status import StatusPolicy  # noqa: E
 from vlm_vpr_ros.mapping.build_images import read_coords_csv  # noqa: E402
 from vlm_vpr_ros.priors.provider import Prior, PriorResult  # noqa: E402
 
-SF = REPO.parent.parent / "shared" / "data" / "sf_night"
+SF = REPO.parent / "shared" / "data" / "sf_night"
 CITY_CENTRE = (37.7749, -122.4194)
 QUERY_CONDITIONS = ("full", "fit640x480", "fit480x360", "jpeg40_640x480")
 
