@@ -15,6 +15,7 @@ from msg_adapters.image import message_to_rgb
 from vlm_vpr_ros.geodesy import haversine_km
 from vlm_vpr_ros.priors import create_prior_provider
 from vlm_vpr_ros.priors.provider import Prior, PriorProvider, PriorQuery, PriorResult
+from vlm_vpr_ros.runtime.relocalize import outcome_log_line
 from vlm_vpr_ros.runtime.worker import Frame, QueryRuntime, RuntimeConfig, outcome_summary
 
 pytestmark = pytest.mark.timeout(60)
@@ -109,8 +110,15 @@ def test_fix_near_truth_with_fixed_prior(pipeline, image):
     assert ok and "lat 39.559" in text and "prior fixed" in text
     # a continuous-mode fix is not a relocalization: the log line says what it is
     assert text.startswith("fix for frame 42.000000007:") and "relocalized" not in text
+    # the node's log line: debug for a continuous fix, info for a relocalization, warning when
+    # flagged (throttled by the node)
+    assert outcome_log_line(out) == ("debug", text)
     out.trigger = "relocalize"
     assert outcome_summary(out, 0.0)[1].startswith("relocalized frame 42.000000007:")
+    assert outcome_log_line(out) == ("info", outcome_summary(out, 0.0)[1])
+    out.hypothesis = dataclasses.replace(h, flags=("no_prior",))
+    assert out.hypothesis.flagged
+    assert outcome_log_line(out) == ("warning", outcome_summary(out, 0.0)[1])
 
 
 def test_fallback_fix_says_the_same_everywhere(pipeline, image):

@@ -107,7 +107,7 @@ def test_request_burst_every_caller_answered(demo_map, tmp_path):
     silent, so the admitted callers hold their places for their whole timeout_s (12 s, far
     more than taking the burst needs) and exactly the limit is admitted."""
     pytest.importorskip("vlm_vpr_interfaces", reason="vlm_vpr_interfaces not built")
-    from vlm_vpr_ros.runtime.worker import MAX_WAITERS
+    from vlm_vpr_ros.runtime.admission import MAX_WAITERS
 
     n = 40
     cmd = [sys.executable, str(REPO / "benchmarks" / "bench_requests.py"), "--map",

@@ -47,7 +47,7 @@ from rclpy.task import Future
 
 from vlm_vpr_ros.errors import ConfigError, VlmVprError
 from vlm_vpr_ros.runtime.params import NESTED, PARAMETER_SPECS, requested_parameters
-from vlm_vpr_ros.runtime.worker import MAX_WAITERS
+from vlm_vpr_ros.runtime.admission import MAX_WAITERS
 from vlm_vpr_ros.ros.malloc import tune_malloc
 from vlm_vpr_ros.ros.requests import DRAIN_S
 from vlm_vpr_ros.ros.wiring import _Wiring

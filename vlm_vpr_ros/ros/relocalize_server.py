@@ -13,7 +13,7 @@
 
 Both use the node's one request QoS (:data:`~vlm_vpr_ros.ros.requests.REQUEST_QOS`), and every
 goal ends (succeeded, aborted, cancelled) before the action server is destroyed
-(:meth:`TypedRelocalize.destroy` waits for the callers in progress, :class:`CallGate`).
+(:meth:`TypedRelocalize.destroy` waits for the callers in progress: ``requests.drain``).
 
 The waiting and the rules (who still waits, abandoned answers never published) are the pure
 runtime's (:meth:`vlm_vpr_ros.runtime.worker.QueryRuntime.relocalize_request`); messages are
@@ -32,7 +32,8 @@ from vlm_vpr_interfaces.srv import Relocalize as RelocalizeSrv
 
 from msg_adapters.answer import answer_msg
 from msg_adapters.navsat import fix_fields
-from vlm_vpr_ros.ros.requests import DRAIN_S, REQUEST_QOS, CallGate, timeout_problem
+from vlm_vpr_ros.ros.requests import REQUEST_QOS, drain, timeout_problem
+from vlm_vpr_ros.runtime.admission import CallGate
 from vlm_vpr_ros.runtime.relocalize import (STAGES, RelocalizeKind, RelocalizeResult,
                                             no_answer_text)
 
@@ -68,12 +69,7 @@ class TypedRelocalize:
     def destroy(self) -> None:
         """Every caller in progress answered first (the runtime was stopped: they hear
         NOT_ACTIVE), then the results sent, then the service and the action server go."""
-        self.gate.close()
-        drained = self.gate.wait_idle(DRAIN_S)
-        if not drained:
-            self.node.get_logger().error(
-                f"{self.gate.in_progress} relocalize callers still in progress after "
-                f"{DRAIN_S:g} s: destroying the action server anyway")
+        drain(self.gate, self.node.get_logger(), "relocalize callers", "the action server")
         # rclpy sends a goal's result from a task the executor runs after the execute
         # callback returned: give it that moment (no public hook tells when it is sent)
         time.sleep(max(0.0, RESULT_GRACE_S - (time.monotonic() - self._last_end)))

@@ -6,25 +6,26 @@ is created with :data:`REQUEST_QOS`: one bounded, deep request queue, so a burst
 queued and answered instead of dropped by a 10-deep default queue (rclpy's services and action
 servers default to depth 10: 80 goals sent at once got 10 answers, 70 callers waited forever).
 
-Admission: at most :data:`~vlm_vpr_ros.runtime.worker.MAX_WAITERS` callers wait for an answer
-at once (all paths together, one executor thread each); a caller beyond that is answered at
-once, ``OUTCOME_BUSY`` (the shared relocalization is scheduled and its fix goes out on
+Admission: at most :data:`~vlm_vpr_ros.runtime.admission.MAX_WAITERS` callers wait for an
+answer at once (all paths together, one executor thread each); a caller beyond that is answered
+at once, ``OUTCOME_BUSY`` (the shared relocalization is scheduled and its fix goes out on
 ``fix``). An action goal beyond the limit is *accepted and aborted at once* with
 ``OUTCOME_BUSY`` in its result, so a behaviour tree can tell "busy, retry" from "invalid"
 (a rejected goal carries no reason). A caller's wait is bounded by :data:`MAX_TIMEOUT_S`.
 
-:class:`CallGate` counts the callers in progress so that every one of them has its answer
-before the services and the action server are destroyed (cleanup, shutdown, SIGINT).
+The callers in progress are counted by a :class:`~vlm_vpr_ros.runtime.admission.CallGate`;
+:func:`drain` closes it and waits for them, so that every one of them has its answer before the
+services and the action server are destroyed (cleanup, shutdown, SIGINT).
 """
 
 from __future__ import annotations
 
 import math
-import threading
-import time
+from typing import Any
 
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
+from vlm_vpr_ros.runtime.admission import CallGate
 from vlm_vpr_ros.runtime.params import PARAMETER_SPECS
 
 #: requests queued per service (and per action service) before the oldest unread is dropped;
@@ -55,48 +56,13 @@ def timeout_problem(timeout_s: float, allow_default: bool) -> str:
     return ""
 
 
-class CallGate:
-    """The callers in progress on the request paths; closed: no new one is admitted."""
-
-    def __init__(self) -> None:
-        self._cond = threading.Condition()
-        self._n = 0
-        self._open = True
-
-    def enter(self, force: bool = False) -> bool:
-        """A caller starts (False: the node is closing, answer it without waiting);
-        ``force``: counted even then (an action goal already accepted)."""
-        with self._cond:
-            if not self._open and not force:
-                return False
-            self._n += 1
-            return True
-
-    def leave(self) -> None:
-        with self._cond:
-            self._n -= 1
-            self._cond.notify_all()
-
-    @property
-    def open(self) -> bool:
-        return self._open
-
-    @property
-    def in_progress(self) -> int:
-        with self._cond:
-            return self._n
-
-    def close(self) -> None:
-        with self._cond:
-            self._open = False
-
-    def reopen(self) -> None:
-        with self._cond:
-            self._open = True
-
-    def wait_idle(self, timeout_s: float = DRAIN_S) -> bool:
-        """Block until no caller is in progress (True) or ``timeout_s`` passed (False)."""
-        deadline = time.monotonic() + timeout_s
-        with self._cond:
-            return self._cond.wait_for(lambda: self._n <= 0,
-                                       max(0.0, deadline - time.monotonic()))
+def drain(gate: CallGate, logger: Any, callers: str, destroyed: str) -> bool:
+    """Admit no new caller and wait at most :data:`DRAIN_S` for the ``callers`` in progress
+    (answered NOT_ACTIVE once the runtime stopped). False when some are still in progress then:
+    logged as an ERROR, ``destroyed`` goes anyway."""
+    gate.close()
+    if gate.wait_idle(DRAIN_S):
+        return True
+    logger.error(f"{gate.in_progress} {callers} still in progress after {DRAIN_S:g} s: "
+                 f"destroying {destroyed} anyway")
+    return False

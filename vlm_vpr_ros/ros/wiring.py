@@ -12,7 +12,6 @@ import copy
 import functools
 import gc
 import os
-import threading
 import time
 from typing import Any
 
@@ -29,13 +28,16 @@ from vlm_vpr_ros.priors import create_prior_provider
 from vlm_vpr_ros.ros.malloc import trim_malloc
 from vlm_vpr_ros.ros.publishers import Outputs, fix_policy
 from vlm_vpr_ros.ros.relocalize_server import TypedRelocalize
-from vlm_vpr_ros.ros.requests import DRAIN_S, REQUEST_QOS, CallGate
+from vlm_vpr_ros.ros.requests import REQUEST_QOS, drain
 from vlm_vpr_ros.ros.robot_prior import RobotPriorInput
 from vlm_vpr_ros.ros.parameters import _Parameters
+from vlm_vpr_ros.runtime.admission import CallGate
+from vlm_vpr_ros.runtime.map_reload import MapReloader
 from vlm_vpr_ros.runtime.params import NodeConfig
-from vlm_vpr_ros.runtime.stats import RuntimeStats, Throttle
+from vlm_vpr_ros.runtime.relocalize import outcome_log_line
+from vlm_vpr_ros.runtime.stats import RuntimeStats, Throttle, map_values
 from vlm_vpr_ros.runtime.worker import (Frame, QueryOutcome, QueryRuntime, RelocalizeKind,
-                                        RuntimeConfig, outcome_summary, reload_pipeline)
+                                        RuntimeConfig)
 
 #: the relocalize services: std_srvs/Trigger has no fields, so one service per kind of request
 RELOCALIZE_SERVICES = {
@@ -114,7 +116,7 @@ class _Wiring(_Parameters):
         # once while a reload runs
         reloc_group = ReentrantCallbackGroup()
         self.gate = CallGate()
-        self._reloading = threading.Lock()
+        self._reloads = MapReloader()  # one at a time (runtime/map_reload.py)
         self._own_services = [self.create_service(
             Trigger, name, functools.partial(self._on_relocalize, kind),
             qos_profile=REQUEST_QOS, callback_group=reloc_group)
@@ -146,9 +148,8 @@ class _Wiring(_Parameters):
 
     def _unload(self) -> None:
         self.end_requests()
-        if getattr(self, "gate", None) is not None and not self.gate.wait_idle(DRAIN_S):
-            self.get_logger().error(f"{self.gate.in_progress} callers still in progress after "
-                                    f"{DRAIN_S:g} s: destroying the services anyway")
+        if getattr(self, "gate", None) is not None:
+            drain(self.gate, self.get_logger(), "callers", "the services")
         if getattr(self, "_diag_timer", None) is not None:
             self.destroy_timer(self._diag_timer)
             self._diag_timer = None
@@ -257,50 +258,20 @@ class _Wiring(_Parameters):
         """Swap in the map re-read from map_dir (e.g. grown by 'vlm-vpr map add') between two
         queries; on failure the current map stays in use. Inactive: reloaded for activate.
         One reload at a time: a call during a reload is answered at once (call again)."""
-        if not self._reloading.acquire(blocking=False):
-            response.success = False
-            response.message = ("busy: a map reload is already running; call map_reload again "
-                                "when it has answered to read changes made since it started")
-            return response
-        try:
-            return self._map_reload(response)
-        finally:
-            self._reloading.release()
-
-    def _map_reload(self, response):
-        runtime = self.runtime
-        if runtime is not None:
-            response.success, response.message = runtime.reload_map()
-            self.pipeline = runtime.pipeline
-            return response
-        new, why = (reload_pipeline(self.pipeline) if self.pipeline is not None
-                    else (None, "no map loaded: configure first"))
-        if new is None:
-            response.success, response.message = False, f"map reload failed: {why}"
-            return response
-        self.pipeline = new
-        response.success, response.message = True, (
-            f"map {self.cfg.map_dir} reloaded: {new.map.n_references} references (used from "
-            "the next activate)")
+        response.success, response.message, pipe = self._reloads.reload(
+            self.runtime, self.pipeline, self.cfg.map_dir)
+        if pipe is not None:  # None: a busy or failed reload keeps the current map
+            self.pipeline = pipe
         return response
 
     # -- output -----
     def _publish_outcome(self, out: QueryOutcome) -> None:
         if not self._active or self.outputs is None:
             return
-        cfg, hyp = self.cfg, out.hypothesis
-        self.outputs.publish(out, cfg, self.policy)
-        if hyp is not None:  # one level per kind of answer; a throttle only drops lines
-            summary = outcome_summary(out, 0.0)[1]  # "fix for frame ..." in continuous mode
-            if hyp.flagged:
-                if self._flag_log.ready():
-                    self.get_logger().warning(summary)
-            elif out.trigger == "relocalize":
-                self.get_logger().info(summary)
-            else:
-                self.get_logger().debug(summary)
-        elif not out.error.startswith("undecodable"):
-            self.get_logger().error(f"no fix for frame {out.frame.key}: {out.error}")
+        self.outputs.publish(out, self.cfg, self.policy)
+        line = outcome_log_line(out)  # one level per kind of answer; flagged ones throttled
+        if line is not None and (line[0] != "warning" or self._flag_log.ready()):
+            getattr(self.get_logger(), line[0])(line[1])
         self._publish_diagnostics()
 
     def _publish_diagnostics(self) -> None:
@@ -311,12 +282,7 @@ class _Wiring(_Parameters):
         runtime = self.runtime
         level, message, values = self._stats.report(busy=bool(runtime and runtime.busy))
         pipe = runtime.pipeline if runtime is not None else self.pipeline
-        values = {"map_dir": self.cfg.map_dir, "descriptor": pipe.descriptor.name,
-                  "fusion": self.cfg.fusion, "calibration": pipe.localizer.calibration_source,
-                  "verification": pipe.verifier.unavailable or "on, p_correct calibrated by "
-                  + pipe.verifier.calibration_source,
-                  "map_references": pipe.map.n_references,
-                  "map_generation": pipe.map.manifest.get("generation", 0), **values}
+        values = {**map_values(pipe, self.cfg.map_dir, self.cfg.fusion), **values}
         robot = getattr(self, "_robot_prior", None)
         if robot is not None:  # the robot's own estimate as the prior (prior_topic)
             values["prior_topic_used"] = robot.provider.used

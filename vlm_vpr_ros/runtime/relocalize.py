@@ -273,3 +273,19 @@ def outcome_summary(outcome: Any, waited_s: float,
                                f"{status}, sigma {horizontal_sigma(h):.0f} m, {p}reference "
                                f"{h.ref_id}, submap {h.submap}, {prior}, "
                                f"{len(h.candidates)} candidates, {took:.2f} s{flag}")
+
+
+def outcome_log_line(outcome: Any) -> tuple[str, str] | None:
+    """How the node logs a published outcome (the worker's QueryOutcome): (level, line), one
+    level per kind of answer: ``warning`` a flagged fix (the node throttles these), ``info`` a
+    relocalization, ``debug`` a continuous fix, ``error`` no fix; None for an undecodable frame
+    (the runtime counts it and logs it throttled)."""
+    hyp = outcome.hypothesis
+    if hyp is None:
+        if outcome.error.startswith("undecodable"):
+            return None
+        return "error", f"no fix for frame {outcome.frame.key}: {outcome.error}"
+    summary = outcome_summary(outcome, 0.0)[1]  # "fix for frame ..." in continuous mode
+    if hyp.flagged:
+        return "warning", summary
+    return ("info" if outcome.trigger == "relocalize" else "debug"), summary

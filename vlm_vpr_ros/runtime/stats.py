@@ -151,3 +151,14 @@ class RuntimeStats:
         return "OK", (f"fix {last['lat']:.5f}, {last['lon']:.5f} STATUS_FIX sigma "
                       f"{last['sigma_m']:.0f} m, p_correct {last['p_correct']:.3f}, prior "
                       f"{last['prior_source']}, submap {last['submap']}"), values
+
+
+def map_values(pipe: Any, map_dir: str, fusion: str) -> dict[str, Any]:
+    """The diagnostics' values that describe the map in use (``pipe``, a LocalizationPipeline):
+    folder, descriptor, fusion, calibration, verification, size and generation."""
+    return {"map_dir": map_dir, "descriptor": pipe.descriptor.name, "fusion": fusion,
+            "calibration": pipe.localizer.calibration_source,
+            "verification": pipe.verifier.unavailable or "on, p_correct calibrated by "
+            + pipe.verifier.calibration_source,
+            "map_references": pipe.map.n_references,
+            "map_generation": pipe.map.manifest.get("generation", 0)}

@@ -5,10 +5,14 @@ undecoded message in a one-frame slot (a newer frame replaces an unused one: *dr
 counted). One worker thread takes frames when a query is due — every ``min_period_s`` in
 ``continuous`` mode, on :meth:`QueryRuntime.request_relocalize` in both modes (kinds of requests:
 :mod:`vlm_vpr_ros.runtime.relocalize`) — decodes the frame, starts the prior request
-(asynchronous, see :mod:`vlm_vpr_ros.priors.provider`), computes the descriptor meanwhile, waits
+(asynchronous: :mod:`vlm_vpr_ros.runtime.prior_wait`), computes the descriptor meanwhile, waits
 for the prior at most ``prior_timeout_s``, localizes (flagged global retrieval when the prior
 failed) and hands a :class:`QueryOutcome` to ``on_outcome``. Nothing here queues more than one
 frame and one pending relocalization per kind.
+
+Callers that wait for an answer are admitted up to a limit
+(:mod:`vlm_vpr_ros.runtime.admission`); :meth:`QueryRuntime.reload_map` swaps the map between
+two queries (:mod:`vlm_vpr_ros.runtime.map_reload`).
 
 Runtime tuning: :meth:`QueryRuntime.update` swaps the rate/timeout settings and the localizer's
 per-query settings (``top_p`` ...); the next query uses them, a running query keeps its own.
@@ -21,7 +25,6 @@ a loop) restarts the period instead of stalling the queries.
 
 from __future__ import annotations
 
-import concurrent.futures as cf
 import dataclasses
 import logging
 import threading
@@ -34,9 +37,12 @@ import numpy as np
 from vlm_vpr_ros.errors import ConfigError, ImageDecodeError, VlmVprError
 from vlm_vpr_ros.localization.localizer import LocalizerConfig
 from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
-from vlm_vpr_ros.priors.provider import PriorProvider, PriorQuery, PriorResult
+from vlm_vpr_ros.priors.provider import PriorProvider, PriorQuery
 from vlm_vpr_ros.runtime import debug_view
+from vlm_vpr_ros.runtime.admission import MAX_WAITERS, WaiterLimit
+from vlm_vpr_ros.runtime.map_reload import reload_pipeline, reloaded_text
 from vlm_vpr_ros.runtime.outcome import Frame, QueryOutcome
+from vlm_vpr_ros.runtime.prior_wait import await_prior, request_prior
 from vlm_vpr_ros.runtime.relocalize import (RelocalizeKind, RelocalizeResult,
                                             RelocalizeTicket, await_answer, no_answer_text,
                                             outcome_summary)
@@ -45,27 +51,10 @@ from vlm_vpr_ros.runtime.stats import RuntimeStats, Throttle
 
 log = logging.getLogger(__name__)
 MODES = ("continuous", "on_trigger")
-#: the admission limit: relocalize callers (all request paths together) that may wait for the
-#: shared outcome at once (the node gives its executor this many threads more than it needs
-#: otherwise); a caller beyond it is answered at once, ``busy`` (docs/node.md "Request paths")
-MAX_WAITERS = 32
 #: LocalizerConfig fields that runtime tuning may change (read per query by the localizer)
 TUNABLE_LOCALIZER = ("top_p", "fusion", "use_submaps", "rerank", "n_submaps")
-__all__ = ["Frame", "MAX_WAITERS", "QueryOutcome", "QueryRuntime", "RelocalizeKind",
-           "RelocalizeTicket", "RuntimeConfig", "outcome_summary", "reload_pipeline"]
-
-
-def reload_pipeline(pipe: LocalizationPipeline) -> tuple[LocalizationPipeline | None, str]:
-    """``pipe``'s map re-read from disk, or (None, why, redacted) on any failure: the
-    ``map_reload`` service answers it and the node keeps its current map."""
-    try:
-        return pipe.reloaded(), ""
-    except (VlmVprError, OSError) as exc:
-        log.error("map reload failed, keeping the current map: %s", exc)
-        return None, redact(exc)
-    except Exception as exc:  # noqa: BLE001 - a service call must not stop the node
-        log.exception("map reload failed, keeping the current map")
-        return None, redact(f"internal error {type(exc).__name__}: {exc}")
+__all__ = ["Frame", "QueryOutcome", "QueryRuntime", "RelocalizeKind", "RelocalizeTicket",
+           "RuntimeConfig", "outcome_summary"]
 
 
 @dataclass(frozen=True)
@@ -98,7 +87,7 @@ class QueryRuntime:
         #: verification settings tuned at runtime (status policy, verify_top_k); None: as opened
         self.verification: tuple[Any, int | None] | None = None
         self.keep_images = False  # hand the decoded frame to on_outcome (debug view)
-        self._waiters = threading.BoundedSemaphore(max(1, max_waiters))
+        self._waiters = WaiterLimit(max_waiters)  # the admission limit (runtime/admission.py)
         self._decode, self._encoded, self._on_outcome = decode, encoded, on_outcome
         self._clock = clock
         self.stats = stats if stats is not None else RuntimeStats(provider.name, config.mode)
@@ -206,11 +195,7 @@ class QueryRuntime:
             with self._cond:
                 self.pipeline = new
             self.stats.count("map_reloads")
-            om, nm = old.map, new.map
-            msg = (f"map {nm.path} reloaded in {time.monotonic() - t0:.1f} s: "
-                   f"{om.n_references} -> {nm.n_references} references, {len(om.submaps)} -> "
-                   f"{len(nm.submaps)} submaps (generation {om.manifest.get('generation', 0)} -> "
-                   f"{nm.manifest.get('generation', 0)})")
+            msg = reloaded_text(old, new, time.monotonic() - t0)
             log.info("%s", msg)
             return True, msg
 
@@ -235,14 +220,14 @@ class QueryRuntime:
         if wait_s <= 0:
             self.request_relocalize(kind)
             return RelocalizeResult("scheduled")
-        if not self._waiters.acquire(blocking=False):
+        if not self._waiters.enter():
             self.request_relocalize(kind)
             return RelocalizeResult("busy")
         try:
             ticket = self.request_relocalize(kind, wait=True)
             return await_answer(ticket, wait_s, cancelled, on_stage, self._give_up)
         finally:
-            self._waiters.release()
+            self._waiters.leave()
 
     # -- lifecycle -----
     def start(self) -> None:
@@ -381,7 +366,8 @@ class QueryRuntime:
         future = None
         if use_prior:
             encoded = self._encoded(frame.msg) if self._encoded else None
-            future = self._request_prior(PriorQuery(image=rgb, encoded=encoded, key=frame.key))
+            future = request_prior(self.provider,
+                                   PriorQuery(image=rgb, encoded=encoded, key=frame.key))
         with self._cond:  # one map and one set of settings for the whole query
             pipe, settings, verification = self.pipeline, self.localizer_config, \
                 self.verification
@@ -399,7 +385,8 @@ class QueryRuntime:
             out.error = f"descriptor failed: {exc}"
             return
         t2 = time.monotonic()
-        prior = self._await_prior(future, t1) if future is not None else None
+        prior = (await_prior(self.provider.name, future, t1, self.config.prior_timeout_s,
+                             lambda: self._stop) if future is not None else None)
         t3 = time.monotonic()
         self._stage("retrieving")
         try:
@@ -419,33 +406,3 @@ class QueryRuntime:
             "prior_latency_ms": prior.latency_s * 1e3 if prior is not None else 0.0,
             **hyp.timings_ms, "query_ms": (t4 - t0) * 1e3,
         }
-
-    def _request_prior(self, query: PriorQuery) -> "cf.Future[PriorResult]":
-        try:
-            return self.provider.request(query)
-        except Exception as exc:  # noqa: BLE001 - failures are values (priors/provider.py)
-            fut: cf.Future[PriorResult] = cf.Future()
-            fut.set_result(PriorResult.failure(self.provider.name, f"error: {exc}"))
-            return fut
-
-    def _await_prior(self, future: "cf.Future[PriorResult]", t_start: float) -> PriorResult:
-        """Wait for the prior until ``prior_timeout_s`` after its request (or stop)."""
-        deadline = t_start + self.config.prior_timeout_s
-        while not future.done():
-            left = deadline - time.monotonic()
-            if left <= 0 or self._stop:
-                future.cancel()
-                reason = "timeout" if left <= 0 else "shutdown"
-                return PriorResult.failure(self.provider.name, reason,
-                                           latency_s=time.monotonic() - t_start)
-            cf.wait([future], timeout=min(left, 0.2))
-        try:
-            result = future.result()
-        except Exception as exc:  # noqa: BLE001 - includes CancelledError
-            return PriorResult.failure(self.provider.name, f"error: {exc}",
-                                       latency_s=time.monotonic() - t_start)
-        if not isinstance(result, PriorResult):
-            return PriorResult.failure(self.provider.name, "error: provider returned "
-                                       f"{type(result).__name__}")
-        return result
-
