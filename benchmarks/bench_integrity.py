@@ -60,8 +60,8 @@ def calibrate(map_dir: Path, root: Path, conditions: str) -> float:
           f"wrong / {loo['right']} right, residual {doc['protection']['residual_m']} m, "
           f"smallest frame {doc['min_long_side_px']} px, {dt:.1f} s")
     nz = doc.get("noise") or {}
-    print(f"    noise level: {nz.get('pairs')} random pairs, median {nz.get('median')}, p99 "
-          f"{nz.get('p99')}, max {nz.get('max')} inliers: competitor floor "
+    print(f"    noise level: {nz.get('pairs')} random pairs, median {nz.get('median')}, p95 "
+          f"{nz.get('p95')}, max {nz.get('max')} inliers: competitor floor "
           f"{doc['competitor_floor']} ({nz.get('seconds')} s of the calibration)")
     for c, v in doc["per_condition"].items():
         print(f"    {c:<16} {v}")

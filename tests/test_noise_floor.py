@@ -1,5 +1,5 @@
 """The matcher's noise level, measured per map on unrelated reference pairs (issue 42): the
-competitor floor of the evidence is its 99th percentile, never below SIFT's 12."""
+competitor floor of the evidence is its 95th percentile, never below SIFT's 12."""
 
 from __future__ import annotations
 
@@ -54,10 +54,13 @@ def test_level_is_the_quantile_of_the_counts_with_the_minimum():
     lv = noise_level(counts.tolist())
     srt = np.sort(counts)
     expect = int(srt[math.ceil(NOISE_QUANTILE * (len(srt) - 1))])  # the "higher" quantile
-    assert lv["p99"] == expect and lv["floor"] == max(expect, MIN_COMPETITOR_FLOOR)
+    assert lv["p95"] == expect and lv["floor"] == max(expect, MIN_COMPETITOR_FLOOR)
     assert lv["pairs"] == 300 and lv["max"] == int(counts.max())
-    quiet = noise_level([0] * 290 + [9] * 10)
-    assert quiet["p99"] == 9 and quiet["floor"] == MIN_COMPETITOR_FLOOR
+    quiet = noise_level([0] * 280 + [9] * 20)
+    assert quiet["p95"] == 9 and quiet["floor"] == MIN_COMPETITOR_FLOOR
+    # a few real views of one scene among the pairs do not raise the floor
+    scene = noise_level([8] * 294 + [400] * 6)
+    assert scene["p95"] == 8 and scene["floor"] == MIN_COMPETITOR_FLOOR
 
 
 def test_calibration_document_checks_the_floor():
