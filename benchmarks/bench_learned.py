@@ -9,10 +9,12 @@ Per preset (``sift``, ``xfeat_lighterglue``, ``xfeat_mnn``, ``disk_lightglue``,
   ``sift``: the SIFT of the vlad_rootsift map's own pass, 640 px);
 * ``K=20 ms``: per query, matching + MAGSAC against 20 references (median over the queries);
 * on SF night (``../shared/data/sf_night``; skipped without it) for the queries 0, 3, 6, ...
-  (``--queries N``: the first N of every third query): the inliers of the **true reference**
-  (the database image nearest the query's position) and of the **strongest look-alike** (the
-  reference with the most inliers among the top 20 ``vlad_rootsift`` candidates that lie more
-  than 25 m from the truth): medians, and in how many queries the true one has more;
+  (``--queries N``: the first N of every third query, default 4; DISK and ALIKED cost ~1 s an
+  image and a pair on a 2-core CPU, so 10 queries take ~35 min there): the inliers of the
+  **true reference** (the database image nearest the query's position) and of the **strongest
+  look-alike** (the reference with the most inliers among the top 20 ``vlad_rootsift``
+  candidates that lie more than 25 m from the truth): medians, and in how many queries the true
+  one has more;
 * ``noise``: inliers of ``--pairs`` random pairs of references at least 1 km apart (drawn with
   a fixed seed among the references the queries extracted): median / p95 / p99 / max — the
   matcher's noise level, SIFT's is 12 (docs/verification.md).
@@ -200,7 +202,9 @@ def main() -> int:
     cpuinfo.apply_cpu_paths()
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N (learned presets)")
-    ap.add_argument("--queries", type=int, default=10, help="every third query, the first N")
+    ap.add_argument("--queries", type=int, default=4,
+                    help="every third query, the first N (default 4: ~10 min on a loaded "
+                         "2-core CPU; docs/verification.md's table used 10)")
     ap.add_argument("--pairs", type=int, default=50, help="random pairs >= 1 km apart")
     ap.add_argument("--presets", default=",".join(PRESETS))
     ap.add_argument("--map", default=None, help="a vlad_rootsift map of SF night (retrieval)")

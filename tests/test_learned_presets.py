@@ -22,7 +22,7 @@ from vlm_vpr_ros.localization.verification.components import (  # noqa: E402
 from vlm_vpr_ros.localization.verification.geometry import (  # noqa: E402
     GeometryConfig, fundamental_inliers)
 from vlm_vpr_ros.localization.verification.presets import (  # noqa: E402
-    PRESETS, check_map_preset, get_preset)
+    check_map_preset, get_preset)
 
 LEARNED = ("xfeat_lighterglue", "xfeat_mnn", "disk_lightglue", "aliked_lightglue")
 #: (registry kind, name, options) -> the shipped file it loads
