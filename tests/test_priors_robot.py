@@ -10,7 +10,7 @@ import math
 import numpy as np
 import pytest
 
-from vlm_vpr_ros.errors import ConfigError
+from vlm_vpr_ros.errors import ConfigError, DataError
 from vlm_vpr_ros.geodesy import haversine_km
 from vlm_vpr_ros.priors.provider import Prior, PriorProvider, PriorQuery, PriorResult
 from vlm_vpr_ros.priors.robot import (RobotEstimate, TopicPrior, TopicPriorConfig,
@@ -142,15 +142,20 @@ def test_navsat_and_pose_messages_become_estimates():
 def test_recorded_priors_carry_sigma_m(tmp_path, caplog):
     csv = tmp_path / "p.csv"
     csv.write_text("file,lat,lon,sigma_m\na.jpg,37.7,-122.4,100\nb.jpg,37.8,-122.5,\n"
-                   "c.jpg,37.9,-122.6,-5\nd.jpg,37.9,-122.6,nan\n")
+                   "c.jpg,91,-122.6,5\n")
     with caplog.at_level(logging.WARNING):
         prov = RecordedPrior(str(csv))
     a = _get_key(prov, "a.jpg")
     assert a.prior.sigma_km == pytest.approx(0.1)
     assert _get_key(prov, "b.jpg").prior.sigma_km is None  # blank: the source's error model
-    assert not _get_key(prov, "c.jpg").ok and not _get_key(prov, "d.jpg").ok
-    assert "2 row(s)" in caplog.text
+    assert not _get_key(prov, "c.jpg").ok  # a bad position: no prior (counted)
+    assert "1 row(s)" in caplog.text
     assert read_prior_csv(csv) == {"a.jpg": (37.7, -122.4), "b.jpg": (37.8, -122.5)}
+    # a sigma_m that is no sigma (-5, nan: tests/test_issue43_priors.py has every kind)
+    for cell in ("-5", "nan"):
+        csv.write_text(f"file,lat,lon,sigma_m\nd.jpg,37.9,-122.6,{cell}\n")
+        with pytest.raises(DataError, match=f"{csv}:2: field sigma_m"):
+            RecordedPrior(str(csv))
 
 
 def _get_key(p: PriorProvider, key: str) -> PriorResult:

@@ -118,6 +118,24 @@ CATALOGUE: dict[str, tuple[str, str, str]] = {
     "node_relocalize_burst": ("node", "300 relocalize calls in a burst, VLM hung",
                               "every call answered; one shared VLM query; canary not in "
                               "the node log"),
+    "node_request_burst": ("node", "`relocalize` action goals and `relocalize_typed` calls "
+                                   "sent at once (40 + 40; 100 + 100 in bench_requests.py)",
+                           "every caller answered: a result, or OUTCOME_BUSY at once beyond "
+                           "the 32 waiting callers admitted"),
+    "node_timeout_unbounded": ("node", "`timeout_s` 1e300 on the action and the typed service",
+                               "goal rejected (WARN with the reason); service OUTCOME_REJECTED "
+                               "naming the 3600 s bound"),
+    "node_shutdown_goal_waiting": ("node", "lifecycle `shutdown` while goals wait for a frame",
+                                   "each goal ABORTED, OUTCOME_NOT_ACTIVE 'shutting down', "
+                                   "before the process exits 0"),
+    "node_sigint_goal_waiting": ("node", "SIGINT to the plain node while goals wait",
+                                 "each goal ABORTED, OUTCOME_NOT_ACTIVE; no traceback; exit 0"),
+    "node_shared_timeout_message": ("node", "a goal (1.5 s) and a typed call (20 s) share one "
+                                            "request; the goal times out",
+                                    "the goal hears the answer may still be published for the "
+                                    "other caller, never that it will not be"),
+    "node_map_reload_burst": ("node", "30 `map_reload` calls at once",
+                              "every call answered: a reload, or 'busy' at once while one runs"),
     # -- writers: one lock per map, describe output safety (issue 19) --------------------------
     "lock_build_during_add": ("writers", "`build-map --overwrite MAP` while `map add MAP` is "
                                          "writing", "build waits, then exit 2 naming the "
@@ -357,4 +375,43 @@ CATALOGUE: dict[str, tuple[str, str, str]] = {
                                   "hold",
                           "the debug picture encodes (panel width bounded); an oversized one "
                           "is refused in one line naming its size, no raw OpenCV line"),
+    # -- round 5 (issue 43): inputs and outputs -------------------------------------------------
+    "prior_sigma_out_of_range": ("csv", "a priors CSV `sigma_m` 1e-300 / 3e7 / 1e12; `--prior "
+                                        "fixed --prior-option sigma_km=1e-300` / `30000`",
+                                 "exit 2 naming file:line and `sigma_m`, or the option, with "
+                                 "the range (1 cm to 20,015 km); no query run, no results "
+                                 "file"),
+    "robot_prior_sigma_grown": ("prior", "the robot's estimate 30,000 s old with growth "
+                                         "1,000 m/s and `max_age_s` 86,400 (both in range)",
+                                "refused as too uncertain (sigma > 1,000 km, said once at "
+                                "configuration): the provider answers, never a failed query"),
+    "out_geojson_over_inputs": ("output", "`evaluate --geojson` naming the results CSV, the "
+                                          "ground truth (also by another path) or a user's "
+                                          "`notes.txt`, with `--overwrite`",
+                                "exit 2 before any work, every file untouched; a GeoJSON of "
+                                "ours replaced"),
+    "out_ablate_over_inputs": ("output", "`bag ablate --out` the map folder, or a folder "
+                                         "holding a user's `ablation.json`",
+                               "exit 2 before any work, untouched"),
+    "map_readd_same_name": ("map", "`map remove X`, then `map add` another picture named X "
+                                   "from another folder",
+                            "the build's picture record follows the edit: X is not shown (one "
+                            "WARN), never the old picture"),
+    "calibrate_pictures_gone": ("map", "`calibrate --conditions default` after the folder of "
+                                       "the source pictures moved",
+                                "exit 2 naming the folder and the conditions, the old "
+                                "calibration kept; `map remove` then keeps it too (WARN)"),
+    "evaluate_header_only": ("csv", "`evaluate` of a results CSV with every column and no row; "
+                                    "of a header-only ground truth",
+                             "exit 2: '0 rows', one line, like every other empty input"),
+    "bag_flipped_byte_ours": ("bag", "one byte flipped inside a chunk of a bag `bag make` "
+                                     "wrote",
+                              "detected by its chunk CRC: no frame of the damaged chunk, the "
+                              "bag reported incomplete"),
+    "evaluate_bag_gt_sigma": ("bag", "`evaluate-bag` ground truth whose own covariance says "
+                                     "sigma 1,000 km",
+                              "not ground truth: those fixes left out, counted in one warning "
+                              "and `summary.json`"),
+    "help_double_percent": ("cli", "`calibrate --help` (every command's help)",
+                            "'68 % / 95 %', no `%%` in any help"),
 }

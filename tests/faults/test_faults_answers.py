@@ -247,3 +247,36 @@ def test_redaction_encodings_unit():
     for name in ("api-version", "model", "deployment", "max_tokens", "keyboard"):
         assert not secret_query_name(name), name
     assert redact("https://h/x?api-version=2024-10-21") == "https://h/x?api-version=2024-10-21"
+
+
+# -- round 5 (issue 43) --------------------------------------------------------------------------
+@pytest.mark.fault("robot_prior_sigma_grown")
+def test_a_robot_estimate_grown_past_every_sigma_is_refused(caplog, demo_map, demo_data):
+    """Growth 1,000 m/s and max_age_s 86,400 (both in range), an estimate 30,000 s old: its
+    sigma grew to 30,000 km, past the error model's range (before: every relocalization
+    failed with 'error model ...'). Now: too uncertain, the provider answers and the query is
+    localized with it."""
+    import logging
+
+    from vlm_vpr_ros.files.images import load_image
+    from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
+    from vlm_vpr_ros.priors import create_prior_provider
+    from vlm_vpr_ros.priors.provider import PriorQuery
+    from vlm_vpr_ros.priors.robot import RobotEstimate, TopicPrior, TopicPriorConfig
+
+    now = [1_000_000.0]
+    with caplog.at_level(logging.WARNING, logger="vlm_vpr_ros.priors.robot"):
+        cfg = TopicPriorConfig(growth_m_per_s=1000.0, max_age_s=86_400.0)
+    assert "too uncertain" in caplog.text
+    fixed = create_prior_provider("fixed", {"lat": 48.85, "lon": 2.35})
+    topic = TopicPrior(fixed, cfg, clock=lambda: now[0])
+    assert topic.update(RobotEstimate(37.77, -122.42, 10.0, now[0] - 1.0, "navsat")) == ""
+    now[0] += 29_999.0
+    res = topic.request(PriorQuery()).result(timeout=5)
+    assert res.ok and res.prior.source == "fixed" and topic.used == 0
+    prior, why = topic.current()
+    assert prior is None and why.startswith("too uncertain")
+    name = sorted(p.name for p in (demo_data / "images").iterdir())[0]
+    hyp = LocalizationPipeline.open(demo_map).localize_image(
+        load_image(demo_data / "images" / name), res)
+    assert hyp.prior is not None and "prior_failed" not in hyp.flags

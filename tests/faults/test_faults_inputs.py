@@ -382,3 +382,49 @@ def test_overflowing_coordinate(cli, tmp_path, demo_data):
     (tmp_path / "c.csv").write_text(f"file,lat,lon\n{name},1e400,7\n")
     exit2(cli("build-map", "--images", demo_data / "images", "--coords", tmp_path / "c.csv",
               "--out", tmp_path / "m"), "c.csv:2", "out of range")
+
+
+# -- round 5 (issue 43) --------------------------------------------------------------------------
+@pytest.mark.fault("prior_sigma_out_of_range")
+def test_prior_sigma_outside_the_error_models_range(cli, demo_map, demo_data, queries,
+                                                    tmp_path):
+    """Before: 1e-300 an OverflowError on every query, 3e7 m / 30000 km an error-model failure
+    on every query, both exit 0."""
+    names = queries.read_text().split()[1:3]
+    out = tmp_path / "r.csv"
+
+    def run(*prior):
+        res = cli("localize", "--map", demo_map, "--images", demo_data / "images",
+                  "--queries", queries, "--out", out, *prior)
+        assert not out.exists() and not out.with_name("r.csv.partial").exists()
+        return res
+
+    for cell in ("1e-300", "3e7", "1e12"):
+        p = tmp_path / "p.csv"
+        p.write_text(f"file,lat,lon,sigma_m\n{names[0]},37.7,-122.4,100\n"
+                     f"{names[1]},37.7,-122.4,{cell}\n")
+        exit2(run("--priors", p), f"{p}:3: field sigma_m", "is outside [0.01, 20015114] m")
+    for km in ("1e-300", "30000"):
+        exit2(run("--prior", "fixed", "--prior-option", "lat=37.7", "--prior-option",
+                  "lon=-122.4", "--prior-option", f"sigma_km={km}"),
+              f"option sigma_km={km}", "is outside [1e-05, 20015] km")
+
+
+@pytest.mark.fault("help_double_percent")
+def test_no_help_prints_a_doubled_percent(capsys):
+    import argparse
+
+    from vlm_vpr_ros.cli import build_parser
+
+    def walk(parser):
+        yield parser
+        for a in parser._actions:
+            if isinstance(a, argparse._SubParsersAction):
+                for sub in a.choices.values():
+                    yield from walk(sub)
+
+    helps = [p.format_help() for p in walk(build_parser())]
+    assert len(helps) > 20 and not [h for h in helps if "%%" in h]
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["calibrate", "--help"])
+    assert "68 % / 95 %" in " ".join(capsys.readouterr().out.split())

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import logging
 import json
 import os
 import shutil
@@ -322,3 +323,50 @@ def test_more_manifest_fields_of_another_type(cli, map_copy, demo_data, queries,
                 ("map", "remove", map_copy, "--ids", tmp_path / "ids.txt"))
         exit2(cli(*args), needle)
     exit2(_localize(cli, map_copy, demo_data, queries, tmp_path), "'calibration'")
+
+
+# -- round 5 (issue 43) --------------------------------------------------------------------------
+@pytest.mark.fault("map_readd_same_name")
+def test_a_picture_readded_under_a_removed_name_is_never_the_old_one(cli, demo_data,
+                                                                       tmp_path, caplog):
+    """Before: the build's record still vouched for the old file, so the debug view and the
+    calibration read the old picture for the new reference."""
+    from source_pictures import build_from_demo
+    from vlm_vpr_ros.maps.map_images import SourceImages
+
+    pics, m, ids = build_from_demo(demo_data, tmp_path, 5, local_features="none")
+    x, old = ids[0], (pics / ids[0]).read_bytes()
+    (tmp_path / "x.txt").write_text(x + "\n")
+    assert cli("map", "remove", m, "--ids", tmp_path / "x.txt")[0] == 0
+    other = sorted(p.name for p in (demo_data / "images").iterdir() if p.name not in ids)[0]
+    new = tmp_path / "new"
+    new.mkdir()
+    shutil.copy(demo_data / "images" / other, new / x)
+    (tmp_path / "add.csv").write_text(f"file,lat,lon\n{x},37.77,-122.42\n")
+    assert cli("map", "add", m, "--images", new, "--coords", tmp_path / "add.csv")[0] == 0
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        data = SourceImages.for_map(m, _manifest(m)).read(x)
+    assert data is None and (pics / x).read_bytes() == old  # not the build folder's old x
+    assert "not in the index" in caplog.text
+
+
+@pytest.mark.fault("calibrate_pictures_gone")
+def test_calibrate_without_the_pictures_keeps_the_calibration(cli, demo_data, tmp_path):
+    """Before: exit 0 with a WARN, the calibration under several conditions replaced by a
+    full-size one, so no answer could reach p_correct 0.99 any more."""
+    from source_pictures import build_from_demo
+    from vlm_vpr_ros.localization.verification.p_correct import load_doc
+    from vlm_vpr_ros.maps.reference_map import ReferenceMap
+
+    pics, m, ids = build_from_demo(demo_data, tmp_path, 6,
+                                   calibration_conditions="full,fit480x360")
+    shutil.move(str(pics), tmp_path / "moved")
+    before = sha_tree(m)
+    exit2(cli("calibrate", "--map", m, "--conditions", "default"), str(pics),
+          "fit640x480", "old calibration was kept")
+    assert sha_tree(m) == before
+    (tmp_path / "rm.txt").write_text(ids[0] + "\n")
+    assert cli("map", "remove", m, "--ids", tmp_path / "rm.txt")[0] == 0
+    assert load_doc(ReferenceMap.load(m))["conditions"] == ["full", "fit480x360"]
+    assert "keeps its earlier calibration" in cli.text

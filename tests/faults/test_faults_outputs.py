@@ -411,3 +411,20 @@ def test_kill9_mid_build_then_resume(tmp_path, demo_data):
 
     assert ReferenceMap.load(out).n_references == 30
     assert sorted(p.name for p in tmp_path.iterdir()) == ["c.csv", "m"]
+
+
+@pytest.mark.fault("bag_flipped_byte_ours")
+def test_a_flipped_byte_in_our_bag_is_detected(small_bag, tmp_path):
+    """Before: `bag make` wrote chunk CRC 0 ("not computed"): a flipped byte went unseen."""
+    from vlm_vpr_ros.bags.reader import open_bag
+
+    mcap = next(small_bag.glob("*.mcap"))
+    full = [m.data for m in open_bag(mcap).messages()]
+    data = bytearray(mcap.read_bytes())
+    data[len(data) // 3] ^= 0x01  # inside the (first) chunk: a JPEG byte
+    flipped = tmp_path / "flip.mcap"
+    flipped.write_bytes(bytes(data))
+    bag = open_bag(flipped)
+    got = [m.data for m in bag.messages()]
+    assert not bag.complete and len(got) < len(full) and bag.problems
+    assert got == full[:len(got)]  # what was read before the damage, never a garbled frame

@@ -139,3 +139,48 @@ def test_evaluate_streams_large_results(tmp_path):
     assert s["junk_rows"] == junk and s["n"] == n - junk and s["fixes"]["n"] == fixes
     assert s["accuracy"]["1km"] == pytest.approx(100.0 * ok / (n - junk), abs=0.05)
     assert peak_mb < 250, peak_mb
+
+
+# -- round 5 (issue 43) --------------------------------------------------------------------------
+@pytest.mark.fault("evaluate_header_only")
+def test_evaluate_of_a_header_only_file_says_0_rows(cli, tmp_path):
+    """Before: 'no status column: results of an older version', 'no radius95_m / top_positions
+    column' for a results CSV that has every column and no row."""
+    res, gt = tmp_path / "r.csv", tmp_path / "gt.csv"
+    header = ("file,lat,lon,ref_id,status,flags,uncertainty_m,radius95_m,p_correct,"
+              "confidence,top_positions,protection_m\n")
+    res.write_text(header)
+    gt.write_text("file,lat,lon\na.jpg,48.86,2.34\n")
+    line = exit2(cli("evaluate", "--results", res, "--ground-truth", gt), str(res), "0 rows")
+    assert "older version" not in cli.text + line and "column" not in line
+    res.write_text(header + "a.jpg,48.86,2.34,r,fix,,5,9,0.99,0.9,,3\n")
+    gt.write_text("file,lat,lon\n")
+    exit2(cli("evaluate", "--results", res, "--ground-truth", gt), str(gt), "0 rows")
+    assert not (tmp_path / "r_integrity").exists()
+
+
+@pytest.mark.fault("evaluate_bag_gt_sigma")
+def test_evaluate_bag_leaves_out_ground_truth_with_a_wide_covariance(cli, demo_data,
+                                                                     demo_map, tmp_path):
+    from vlm_vpr_ros.bags.messages import COMPRESSED, NAVSATFIX, compressed_msg, navsatfix_msg
+    from vlm_vpr_ros.bags.writer import BagWriter, qos_profile
+
+    rows = _coords(demo_data, 4)
+    with BagWriter(tmp_path / "bag") as w:
+        w.add_topic("/camera/image/compressed", COMPRESSED, [qos_profile()])
+        w.add_topic("/gps/fix", NAVSATFIX, [qos_profile()])
+        for k, (f, lat, lon) in enumerate(rows):
+            t = 10**18 + k * 10**9
+            sigma = 1e6 if k % 2 else 3.0  # sigma 1,000 km: no ground truth
+            w.write("/gps/fix", navsatfix_msg(lat, lon, t, sigma_m=sigma), t)
+            w.write("/camera/image/compressed",
+                    compressed_msg((demo_data / "images" / f).read_bytes(), "jpeg", t,
+                                   "camera"), t)
+    rc, out, _ = cli("evaluate-bag", tmp_path / "bag", "--map", demo_map, "--out",
+                     tmp_path / "ev", "--no-plots", "--json")
+    assert rc == 0 and "Traceback" not in cli.text
+    d = json.loads((tmp_path / "ev" / "summary.json").read_text())["details"]
+    assert d["gt_fixes_too_uncertain"] == 2 and d["frames_scored"] == 2 and d["frames"] == 4
+    assert any("2 ground-truth fix(es)" in w for w in d["warnings"])
+    said = [ln for ln in cli.text.splitlines() if "not ground truth" in ln]
+    assert len(said) == 1 and "2 fix(es)" in said[0]

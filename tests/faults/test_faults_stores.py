@@ -273,3 +273,46 @@ def test_priors_score_details_checked_before_any_work(cli, tmp_path):
     out = tmp_path / "d.csv"
     assert cli(*base, out)[0] == 0 and cli(*base, out)[0] == 0  # ours: replaced
     assert list(csv.DictReader(out.open()))[0]["file"] == "a.jpg"
+
+
+# -- round 5 (issue 43) --------------------------------------------------------------------------
+_RESULTS = ("file,lat,lon,ref_id,status,flags,uncertainty_m,radius95_m,p_correct\n"
+            "a.jpg,48.8584,2.2945,r1,fix,,25,60,0.97\n")
+
+
+@pytest.mark.fault("out_geojson_over_inputs")
+def test_geojson_never_over_an_input_or_a_users_file(cli, tmp_path):
+    """Before: exit 0, the results CSV (or the ground truth, or notes.txt) replaced by
+    GeoJSON."""
+    res, gt, notes = tmp_path / "r.csv", tmp_path / "gt.csv", tmp_path / "notes.txt"
+    res.write_text(_RESULTS)
+    gt.write_text("file,lat,lon\na.jpg,48.8606,2.3376\n")
+    notes.write_text("my notes\n")
+    os.symlink(gt, tmp_path / "gt_link.csv")
+    before = sha_tree(res, gt, notes)
+    for target in (res, gt, tmp_path / "gt_link.csv", notes):
+        exit2(cli("evaluate", "--results", res, "--ground-truth", gt, "--geojson", target,
+                  "--overwrite"), str(target))
+        assert sha_tree(res, gt, notes) == before and not (tmp_path / "r_integrity").exists()
+    ours = tmp_path / "r.geojson"
+    for _ in range(2):  # a GeoJSON of ours is replaced
+        assert cli("evaluate", "--results", res, "--ground-truth", gt, "--geojson", ours,
+                   "--overwrite")[0] == 0
+        assert json.loads(ours.read_text())["type"] == "FeatureCollection"
+    assert sha_tree(res, gt, notes) == before
+
+
+@pytest.mark.fault("out_ablate_over_inputs")
+def test_ablate_out_never_over_inputs(cli, map_copy, demo_data, tmp_path):
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "ablation.json").write_text('{"my": "numbers"}\n')
+    q = tmp_path / "q.csv"
+    q.write_text("file,lat,lon\n" + "".join(
+        ",".join(r) + "\n" for r in list(csv.reader(open(demo_data / "coords.csv")))[1:4]))
+    before = sha_tree(map_copy, mine)
+    for out, needle in ((map_copy, "is the input"), (map_copy / "ablation", "inside"),
+                        (mine, "not an ablation.json this command wrote")):
+        exit2(cli("ablate", "--map", map_copy, "--images", demo_data / "images", "--queries",
+                  q, "--out", out, "--top-p", "1"), needle)
+        assert sha_tree(map_copy, mine) == before

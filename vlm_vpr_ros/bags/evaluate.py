@@ -18,7 +18,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator
 
-from vlm_vpr_ros.bags.frames import Frame, GroundTruth, iter_frames, read_ground_truth
+from vlm_vpr_ros.bags.frames import (MAX_GT_SIGMA_M, Frame, GroundTruth, iter_frames,
+                                     read_ground_truth)
 from vlm_vpr_ros.bags.reader import BagReader
 from vlm_vpr_ros.errors import BagError, VlmVprError
 from vlm_vpr_ros.files.csvio import write_csv_atomic
@@ -159,11 +160,20 @@ def _evaluate(bag: BagReader, pipeline: Any, provider: PriorProvider, out: Path,
         "frames": len(rows), "frames_scored": len(scored),
         "frames_without_gt": len(rows) - len(scored),
         "frames_failed": len(rows) - decoded, "bag_complete": bag.complete,
-        "warnings": list(bag.problems) + errors[:5], "outputs": outputs,
+        "gt_fixes_too_uncertain": gt.too_uncertain,
+        "warnings": list(bag.problems) + _gt_warnings(gt) + errors[:5], "outputs": outputs,
     }
     result = {**summary, "details": details}
     atomic_write_json(out / "summary.json", result)
     return result
+
+
+def _gt_warnings(gt: GroundTruth) -> list[str]:
+    if not gt.too_uncertain:
+        return []
+    return [f"{gt.too_uncertain} ground-truth fix(es) on {gt.topic} with a sigma above "
+            f"{MAX_GT_SIGMA_M:g} m (their own covariance) were not used: frames paired only "
+            "with them are not scored"]
 
 
 def _integrity(rows: list[dict], alert_limit_m: float) -> tuple[dict, list]:

@@ -16,6 +16,9 @@ from vlm_vpr_ros.bags.reader import BagReader, RawMessage, deserialize
 from vlm_vpr_ros.errors import BagError, ImageDecodeError
 
 log = logging.getLogger(__name__)
+#: ground-truth fixes whose own covariance says a horizontal sigma above this (m) are not
+#: ground truth: left out of the scoring, counted in one warning (docs/bags.md)
+MAX_GT_SIGMA_M = 100.0
 
 
 @dataclass
@@ -35,6 +38,17 @@ class GroundTruth:
     lat: list[float] = field(default_factory=list)
     lon: list[float] = field(default_factory=list)
     rejected: int = 0  # fixes without a valid position (NO_FIX, NaN, out of range)
+    too_uncertain: int = 0  # fixes whose own sigma is above MAX_GT_SIGMA_M
+
+
+def horizontal_sigma_m(msg) -> float | None:
+    """Horizontal standard deviation (m) of a NavSatFix: the larger of the east/north
+    variances; None when the covariance is unknown."""
+    if msg.position_covariance_type == 0:  # COVARIANCE_TYPE_UNKNOWN
+        return None
+    cov = msg.position_covariance
+    var = max(float(cov[0]), float(cov[4]))
+    return math.sqrt(var) if math.isfinite(var) and var >= 0 else math.inf
 
 
 def _stamp(msg, raw: RawMessage) -> int:
@@ -42,11 +56,16 @@ def _stamp(msg, raw: RawMessage) -> int:
     return t if t > 0 else raw.log_time_ns
 
 
-def read_ground_truth(bag: BagReader, topic: str) -> GroundTruth:
-    """Every usable ``NavSatFix`` on ``topic``, sorted by stamp."""
+def read_ground_truth(bag: BagReader, topic: str,
+                      max_sigma_m: float = MAX_GT_SIGMA_M) -> GroundTruth:
+    """Every usable ``NavSatFix`` on ``topic``, sorted by stamp. A fix whose own covariance
+    says a horizontal sigma above ``max_sigma_m`` is left out (``too_uncertain``, one warning
+    with the count): scoring against a truth of +-1,000 km would be a confident wrong score.
+    An unknown covariance (type 0) is kept: most recorded GPS topics do not fill it."""
     from sensor_msgs.msg import NavSatStatus
 
     items = []
+    worst = 0.0
     gt = GroundTruth(topic)
     for raw in bag.messages([topic]):
         try:
@@ -58,7 +77,11 @@ def read_ground_truth(bag: BagReader, topic: str) -> GroundTruth:
         lat, lon = float(msg.latitude), float(msg.longitude)
         ok = (msg.status.status >= NavSatStatus.STATUS_FIX and math.isfinite(lat)
               and math.isfinite(lon) and -90 <= lat <= 90 and -180 <= lon <= 180)
-        if ok:
+        sigma = horizontal_sigma_m(msg) if ok else None
+        if sigma is not None and not sigma <= max_sigma_m:
+            gt.too_uncertain += 1
+            worst = max(worst, sigma)
+        elif ok:
             items.append((_stamp(msg, raw), lat, lon))
         else:
             gt.rejected += 1
@@ -68,6 +91,10 @@ def read_ground_truth(bag: BagReader, topic: str) -> GroundTruth:
     gt.lon = [b for _, _, b in items]
     if gt.rejected:
         log.warning("%s: %d fix(es) without a valid position ignored", topic, gt.rejected)
+    if gt.too_uncertain:
+        log.warning("%s: %d fix(es) whose own covariance says a sigma above %g m (up to %.3g "
+                    "m) are not ground truth: their frames are not scored", topic,
+                    gt.too_uncertain, max_sigma_m, worst)
     return gt
 
 

@@ -23,6 +23,7 @@ from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from vlm_vpr_ros.bags.frames import horizontal_sigma_m
 from vlm_vpr_ros.bags.messages import COMPRESSED, IMAGE_TYPES, NAVSATFIX, stamp_ns
 from vlm_vpr_ros.bags.reader import BagReader, RawMessage, deserialize, open_bag
 from vlm_vpr_ros.errors import BagError, ConfigError, ImageDecodeError
@@ -99,16 +100,6 @@ class _Fixes:
 def _stamp(msg, raw: RawMessage) -> int:
     t = stamp_ns(msg.header)
     return t if t > 0 else raw.log_time_ns
-
-
-def horizontal_sigma_m(msg) -> float | None:
-    """Horizontal standard deviation (m) of a NavSatFix: the larger of the east/north
-    variances; None when the covariance is unknown."""
-    if msg.position_covariance_type == 0:  # COVARIANCE_TYPE_UNKNOWN
-        return None
-    cov = msg.position_covariance
-    var = max(float(cov[0]), float(cov[4]))
-    return math.sqrt(var) if math.isfinite(var) and var >= 0 else math.inf
 
 
 def _read_fixes(bag: BagReader, topic: str, cfg: TeachConfig, counts: Counter) -> _Fixes:

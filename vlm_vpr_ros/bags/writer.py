@@ -9,6 +9,9 @@ ROS 2 Jazzy type store. What this module adds around it:
   files and folder are ``fsync``-ed, and only then is it renamed to ``BAG`` (an old bag there is
   replaced last), so a half-written bag never appears under the target name;
 * messages as rclpy objects (serialized with ``rclpy.serialization``) or as CDR bytes;
+* real chunk CRCs in MCAP bags: rosbags' MCAP writer leaves every chunk's
+  ``uncompressed_crc`` 0 ("not computed"), so a flipped byte went unseen; each chunk's CRC-32
+  is written in place as the chunk is closed, and readers (rosbags', ours) check it;
 * ``ros_distro: jazzy`` (:data:`ROS_DISTRO`, the type store's distribution) where rosbags
   writes its own name: ``metadata.yaml``, the copy of it inside the storage file, and a sqlite3
   bag's ``schema`` table;
@@ -22,7 +25,9 @@ import logging
 import os
 import shutil
 import sqlite3
+import struct
 import time
+import zlib
 from pathlib import Path
 from typing import Any
 
@@ -42,6 +47,8 @@ METADATA_VERSION = 9
 #: the ROS distribution recorded in bags (the messages are Jazzy's: :func:`typestore`)
 ROS_DISTRO = "jazzy"
 _ROSBAGS_DISTRO = "ros_distro: rosbags"
+#: where a chunk record's ``uncompressed_crc`` lies, from the record's first byte (MCAP spec)
+_CHUNK_CRC_OFFSET = 1 + 8 + 3 * 8
 #: rmw's "infinite" duration as rosbag2 stores it in QoS profiles
 _INFINITE = (9223372036, 854775807)
 
@@ -103,6 +110,7 @@ class BagWriter:
             self._bag.set_custom_data("writer", f"vlm_vpr_ros {__version__}")
             self._bag.open()
             self._distro_in_storage()
+            self._crc_in_chunks()
         except OSError as exc:
             shutil.rmtree(self._stage, ignore_errors=True)
             raise OutputError(describe_os_error(exc, self.path)) from None
@@ -119,6 +127,26 @@ class BagWriter:
             close(version, metadata.replace(_ROSBAGS_DISTRO, f"ros_distro: {ROS_DISTRO}"))
 
         storage.close = close_with_distro
+
+    def _crc_in_chunks(self) -> None:
+        """Each MCAP chunk's ``uncompressed_crc`` (CRC-32 of its records before compression)
+        written where rosbags' writer puts 0: opcode (1) + length (8) + start, end and
+        uncompressed size (3 x 8) precede it in the chunk record (MCAP spec, "Chunk")."""
+        storage = getattr(self._bag, "storage", None)
+        close_chunk = getattr(storage, "close_chunk", None)
+        if close_chunk is None:  # sqlite3: no chunks
+            return
+
+        def close_chunk_with_crc() -> None:
+            crc = zlib.crc32(storage.chunk.bio.getbuffer())
+            start = storage.bio.tell()
+            close_chunk()
+            end = storage.bio.tell()
+            storage.bio.seek(start + _CHUNK_CRC_OFFSET)
+            storage.bio.write(struct.pack("<I", crc))
+            storage.bio.seek(end)
+
+        storage.close_chunk = close_chunk_with_crc
 
     def _distro_in_metadata(self, staged: Path) -> None:
         """``ros_distro: jazzy`` in the finished bag's ``metadata.yaml`` (and a sqlite3 bag's

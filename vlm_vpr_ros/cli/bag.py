@@ -229,7 +229,7 @@ def cmd_evaluate_bag(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else Path(str(Path(args.bag)).rstrip("/") + "_eval")
     from vlm_vpr_ros.files.outputs import check_not_inside, check_target
 
-    check_not_inside(out, [bag.path])  # fail before loading the map
+    check_not_inside(out, [bag.path, args.map])  # fail before loading the map
     check_target(out, "evaluation", args.overwrite)
     pipe = LocalizationPipeline.open(args.map, localizer=localizer_config(args),
                                      descriptor_config=descriptor_options(args))
@@ -275,6 +275,8 @@ def cmd_ablate(args: argparse.Namespace) -> int:
         raise ConfigError(f"--top-p must be comma-separated integers, got {args.top_p!r}") \
             from None
     choose(args.metric, {f"{t:g}km": 1 for t in (1, 25, 200, 750, 2500)}, "metric")
+    out = Path(args.out)
+    _check_ablation_out(out, [args.map, args.bag], [args.images, args.queries])
     pipe = LocalizationPipeline.open(args.map, descriptor_config=descriptor_options(args))
     pipe.map.open_submaps()
     provider = make_prior_provider(args)
@@ -284,7 +286,7 @@ def cmd_ablate(args: argparse.Namespace) -> int:
         provider.close()
     res = run_ablation(pipe.map, desc, truth, priors, top_ps, clusters=args.clusters,
                        progress=lambda s: log.debug("ablation: %s", s))
-    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
     plot = plot_topp_ablation(out / "ablation_top_p.png", res.top_ps,
                               {k: [s["accuracy"] for s in v] for k, v in res.rows.items()},
                               title=f"top-p ablation ({len(desc)} queries)")
@@ -300,3 +302,26 @@ def cmd_ablate(args: argparse.Namespace) -> int:
     print(format_ablation(res, args.table_top_p, args.metric))
     print(f"\nplot: {plot}\njson: {out / 'ablation.json'}")
     return 0
+
+
+def _is_ablation_json(path: Path) -> bool:
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    return isinstance(data, dict) and {"top_p", "rows", "tables"} <= set(data)
+
+
+def _check_ablation_out(out: Path, folders: list, files: list) -> None:
+    """Before any work: ``ablate --out`` is no input (nor in the map or the bag, nor holds
+    one) and its two files are new or an earlier ablation's
+    (:func:`~vlm_vpr_ros.files.outputs.check_file_output`)."""
+    from vlm_vpr_ros.files.outputs import check_file_output, check_not_inside
+
+    check_not_inside(out, folders)
+    check_not_inside(out, files, allow_out_inside=True)
+    inputs = [i for i in folders + files if i]
+    js = out / "ablation.json"
+    check_file_output(js, "--out", inputs, _is_ablation_json, "an ablation.json")
+    check_file_output(out / "ablation_top_p.png", "--out", inputs,
+                      lambda p: _is_ablation_json(js), "an ablation plot")

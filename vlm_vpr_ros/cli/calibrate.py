@@ -21,6 +21,7 @@ import logging
 import math
 import os
 from pathlib import Path
+from typing import Any
 
 from vlm_vpr_ros.errors import DataError
 
@@ -31,7 +32,7 @@ MIN_ROWS = 10
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "calibrate", help="calibrate a map's uncertainty radii on labelled queries",
-        description="Conformal calibration of the 68 %% / 95 %% radii from a results CSV of "
+        description="Conformal calibration of the 68 % / 95 % radii from a results CSV of "
                     "'vlm-vpr localize' on this map and its ground truth; stored in the map's "
                     "calibration.json (docs/fusion.md).")
     p.add_argument("--results", metavar="RESULTS.csv",
@@ -159,6 +160,7 @@ def _calibrate_conditions(args: argparse.Namespace) -> None:
         print(f"dry run: would calibrate under {','.join(names)}")
         return
     ref_map = ReferenceMap.load(args.map)
+    _check_pictures(ref_map, names, args.reference_images)
     old = load_doc(ref_map)
     doc = calibrate_map(ref_map, conditions=names, images_dir=args.reference_images or None,
                         degraded_queries=args.degraded_queries)
@@ -171,6 +173,23 @@ def _calibrate_conditions(args: argparse.Namespace) -> None:
     print(f"verification calibration under {','.join(doc['conditions'])}: {loo['queries']} "
           f"leave-one-out queries ({loo['wrong']} wrong, {loo['right']} right), protection "
           f"residual {doc['protection']['residual_m']:g} m, {loo['seconds']:g} s")
+
+
+def _check_pictures(ref_map: Any, names: list[str], reference_images: str) -> None:
+    """Conditions other than ``full`` need the reference pictures: without them the
+    calibration would cover full-size queries only and replace the one the map has (a map
+    calibrated under four conditions would silently stop giving fixes). Refused up front;
+    the old calibration stays."""
+    from vlm_vpr_ros.maps.map_images import pictures_problem
+
+    need = [n for n in names if n != "full"]
+    if not need:
+        return
+    why = pictures_problem(ref_map.path, ref_map.manifest, ref_map.all_ids(),
+                           reference_images or "")
+    if why:
+        raise DataError(f"{ref_map.path}: conditions {','.join(need)} need the reference "
+                        f"pictures: {why}; the old calibration was kept")
 
 
 def _calibrate(args: argparse.Namespace) -> int:

@@ -12,8 +12,13 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from vlm_vpr_ros.evaluation import integrity, integrity_tables
     from vlm_vpr_ros.evaluation.metrics import format_table
     from vlm_vpr_ros.evaluation.results_csv import JUNK, evaluate_results_csv
+    from vlm_vpr_ros.files.geojson import is_results_geojson
+    from vlm_vpr_ros.files.outputs import check_file_output
 
     alert_m = integrity.check_alert_limit(args.alert_limit_m)
+    if args.geojson:  # before any work: never over an input or a file of the user's
+        check_file_output(args.geojson, "--geojson", [args.results, args.ground_truth],
+                          is_results_geojson, "a GeoJSON")
     summary, extra = evaluate_results_csv(args.results, args.ground_truth)
     if args.geojson:
         from vlm_vpr_ros.evaluation.metrics import read_ground_truth

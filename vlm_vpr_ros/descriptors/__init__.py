@@ -39,6 +39,7 @@ _REGISTRY: dict[str, DescriptorPreset] = {}
 # Modules whose import registers presets. Lazy so that the core never needs torch.
 _PROVIDER_MODULES = (
     "vlm_vpr_ros.descriptors.vlad",
+    "vlm_vpr_ros.descriptors.vlad_xfeat",
     "vlm_vpr_ros.descriptors.deep",
 )
 _loaded = False

@@ -16,8 +16,10 @@ so the weight-free default never needs torch.
 
 from __future__ import annotations
 
+import contextlib
 import logging
-from typing import Any
+import threading
+from typing import Any, Iterator
 
 import cv2
 import numpy as np
@@ -61,6 +63,32 @@ def resolve_device(device: str) -> torch.device:
         raise ConfigError(f"xfeat device {device!r}: {exc}") from None
 
 
+_THREADS = threading.Lock()
+
+
+@contextlib.contextmanager
+def torch_threads(n: int) -> Iterator[None]:
+    """torch's intra-op threads at ``n`` for the block (0: unchanged), restored after.
+
+    XFeat on one 640 px frame is 67 ms of CPU on one thread (AMD EPYC, 2 cores); with torch's
+    default of one thread per core it took 925 ms of CPU and 4.2 s of wall time on the same
+    2-core machine while other work ran (its OpenMP team spins for a core another thread
+    holds), the failure mode the project's BLAS policy avoids too (:mod:`vlm_vpr_ros.threads`).
+    The setting is process-wide: blocks run one at a time."""
+    if n <= 0:
+        yield
+        return
+    with _THREADS:
+        before = torch.get_num_threads()
+        if before != n:
+            torch.set_num_threads(n)
+        try:
+            yield
+        finally:
+            if before != n:
+                torch.set_num_threads(before)
+
+
 class XFeatExtractor:
     """XFeat sparse features of RGB uint8 images (module docstring)."""
 
@@ -68,11 +96,15 @@ class XFeatExtractor:
     descriptor_dim = DESCRIPTOR_DIM
     descriptor_dtype = np.dtype(np.float16)
 
-    def __init__(self, max_side: int = 640, device: str = "cpu") -> None:
+    def __init__(self, max_side: int = 640, device: str = "cpu", threads: int = 1) -> None:
         if not isinstance(max_side, int) or isinstance(max_side, bool) \
                 or not 64 <= max_side <= 8192:
             raise ConfigError(f"xfeat max_side must be an integer in 64..8192, got {max_side!r}")
+        if not isinstance(threads, int) or isinstance(threads, bool) or not 0 <= threads <= 64:
+            raise ConfigError(f"xfeat threads must be an integer in 0..64 (0: torch's own "
+                              f"setting), got {threads!r}")
         self.max_side = max_side
+        self.threads = threads
         self.device = resolve_device(device)
         path = shipped_weights("xfeat")
         what = f"xfeat checkpoint {path} ({get_spec('xfeat').distribution})"
@@ -101,7 +133,7 @@ class XFeatExtractor:
         if k <= 0:
             return _empty(size, scale)
         x = torch.from_numpy(np.ascontiguousarray(rgb)).permute(2, 0, 1)[None]
-        with torch.inference_mode():
+        with torch_threads(self.threads), torch.inference_mode():
             out = self.model.detectAndCompute(x.to(self.device).float() / 255.0, top_k=k)[0]
         score = out["scores"].float().cpu().numpy()
         if len(score) == 0:

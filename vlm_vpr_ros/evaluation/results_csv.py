@@ -13,9 +13,11 @@ Junk (:data:`JUNK`): a latitude/longitude that is not a plain number or out of r
 (``FIX``, ``bogus``), a ``p_correct`` outside 0..1, a radius that is not a number >= 0, and a
 file scored already (the first row counts). Junk rows are counted by reason, logged with the
 first ``file:line``, and left out of every number. An empty estimate is not junk: it is a
-query without an answer (a miss). ``--results`` and ``--ground-truth`` naming one file is
-refused (results scored against themselves). ``flagged`` counts rows with a fallback flag
-(:data:`vlm_vpr_ros.types.FALLBACK_FLAGS`, the node's meaning), not ``verified`` alone.
+query without an answer (a miss). A file of 0 rows (a header only), results or ground truth,
+is a DataError saying so, as for every other empty input. ``--results`` and
+``--ground-truth`` naming one file is refused (results scored against themselves).
+``flagged`` counts rows with a fallback flag (:data:`vlm_vpr_ros.types.FALLBACK_FLAGS`, the
+node's meaning), not ``verified`` alone.
 """
 
 from __future__ import annotations
@@ -91,6 +93,9 @@ class GroundTruth:
                 hashes.append(hash(name))
                 coords.extend((la, lo))
                 lines.append(line)
+        if not lines:
+            raise DataError(f"ground truth CSV {path}: 0 rows (a header only): nothing to "
+                            "score against")
         self.coords = np.frombuffer(coords, dtype=np.float64).reshape(-1, 2)
         h = np.frombuffer(hashes, dtype=np.int64)
         line_of = np.frombuffer(lines, dtype=np.int64)
@@ -214,6 +219,9 @@ def evaluate_results_csv(results_csv: Any, ground_truth_csv: Any,
             has_status = has_status or bool(st)
             flagged = c_fl is not None and not FALLBACK_FLAGS.isdisjoint(row[c_fl].split("|"))
             flags.append((st == "fix") | (flagged << 1))
+    if not lines and not sum(junk.values()):  # said as such, not as columns it seems to lack
+        raise DataError(f"results CSV {results_csv}: 0 rows (a header only): nothing to "
+                        "evaluate")
     g = truth.lookup(*(np.frombuffer(a, dtype=np.int64) for a in (names, base_rows, bases)))
     del names, bases, base_rows
     line_of = np.frombuffer(lines, dtype=np.int64)

@@ -11,13 +11,18 @@ One ``Feature`` per row of a results CSV, in the CSV's order, in a ``FeatureColl
   where the CSV cell is empty or not a number) and, with ground truth, ``truth``
   (``[longitude, latitude]``) and ``error_km`` (great-circle, :mod:`vlm_vpr_ros.geodesy`).
 
-The file is written atomically (:mod:`vlm_vpr_ros.files.atomic`).
+The file is written atomically (:mod:`vlm_vpr_ros.files.atomic`), after the one check of
+every output (:func:`~vlm_vpr_ros.files.outputs.check_file_output`): never over an input or a
+file of the user's; a GeoJSON of ours (its ``generator`` member, a foreign member RFC 7946 §6.1
+allows) is replaced.
 """
 
 from __future__ import annotations
 
 import math
 import os
+import re
+from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 from vlm_vpr_ros.files.atomic import atomic_write_json
@@ -27,6 +32,18 @@ from vlm_vpr_ros.geodesy import haversine_km, valid_latlon
 #: numeric properties copied from the results CSV
 NUMBERS = ("uncertainty_m", "radius95_m", "p_correct", "confidence")
 DIGITS = 7  # 1e-7 degree: about 1 cm
+GENERATOR = "vlm_vpr_ros evaluate --geojson"
+_OURS = re.compile(r'\A\{\s*"type":\s*"FeatureCollection",\s*"generator":\s*"'
+                   + re.escape(GENERATOR) + '"')
+
+
+def is_results_geojson(path: Path) -> bool:
+    """Whether ``path`` is a GeoJSON this command wrote (its head names our generator)."""
+    try:
+        with open(path, encoding="utf-8") as fh:
+            return bool(_OURS.match(fh.read(256)))
+    except (OSError, UnicodeDecodeError):
+        return False
 
 
 def _number(value: object) -> float | None:
@@ -64,7 +81,7 @@ def results_collection(rows: Sequence[Mapping[str, Any]],
                        truth: Mapping[str, tuple[float, float]] | None = None
                        ) -> dict[str, Any]:
     """A FeatureCollection of the rows (with ``truth``: file -> (lat, lon))."""
-    return {"type": "FeatureCollection",
+    return {"type": "FeatureCollection", "generator": GENERATOR,
             "features": [result_feature(r, None if truth is None else truth.get(r.get("file")))
                          for r in rows]}
 

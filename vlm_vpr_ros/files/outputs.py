@@ -13,7 +13,9 @@ e.g. a v2 map build)::
 * ``overwrite`` only ever replaces a folder this tool wrote (a map manifest, a bag or an
   evaluation folder carrying :data:`MARKER`); anything else is refused with a message that does
   not suggest deleting it;
-* :func:`check_not_inside` keeps outputs out of inputs (``evaluate-bag BAG --out BAG``);
+* :func:`check_not_inside` keeps outputs out of inputs (``evaluate-bag BAG --out BAG``), and
+  :func:`check_file_output` is the same rule for every single-file output (``evaluate
+  --geojson``, ``priors score --details``): never one of the inputs, never a user's file;
 * the staging folder ``PARENT/.NAME.partial`` is fixed, so a resumable writer (the map build)
   finds its finished work there after a crash or a full disk;
 * one writer at a time: :class:`~vlm_vpr_ros.files.lock.WriterLock` on ``PARENT/.NAME.lock``,
@@ -53,21 +55,37 @@ def _csv_header(path: Path) -> list[str]:
         return []
 
 
-def check_csv_output(out: str | os.PathLike[str], columns: list[str], what: str,
-                     inputs: Iterable[str | os.PathLike[str] | None] = ()) -> None:
-    """Before any work: ``out`` may be written as a CSV with ``columns`` (it does not exist, or
-    is such a CSV written before); OutputError (one line, file untouched) when it is a folder,
-    one of ``inputs``, or another file."""
+def check_file_output(out: str | os.PathLike[str], what: str,
+                      inputs: Iterable[str | os.PathLike[str] | None] = (),
+                      ours: Callable[[Path], bool] | None = None, kind: str = "a file") -> bool:
+    """Before any work, the one check of every single-file output (a details CSV, a GeoJSON,
+    an ablation's JSON): OutputError (one line, file untouched) when ``out`` is one of
+    ``inputs`` (the same file by any path, links included), is a folder, or exists and is not
+    ``kind`` this command wrote (``ours(path)`` False; None: no existing file is ours). An
+    output of ours is replaced. Returns whether ``out`` exists."""
     p = Path(out)
     for inp in inputs:
-        if inp is not None and os.path.lexists(p) and os.path.exists(inp) and \
-                os.path.samefile(p, inp):
+        if inp is None:
+            continue
+        same = (_resolved(p) == _resolved(inp) or (
+            os.path.lexists(p) and os.path.exists(inp) and os.path.exists(p)
+            and os.path.samefile(p, inp)))
+        if same:
             raise OutputError(f"{what} {out} is the input {inp}; choose another file")
     if p.is_dir():
-        raise OutputError(f"{what} {out} is a folder; give a CSV file name")
-    if os.path.lexists(p) and _csv_header(p) != list(columns):
-        raise OutputError(f"{what} {out} exists and is not a CSV this command wrote; it is "
+        raise OutputError(f"{what} {out} is a folder; give a file name")
+    if not os.path.lexists(p):
+        return False
+    if ours is None or not ours(p):
+        raise OutputError(f"{what} {out} exists and is not {kind} this command wrote; it is "
                           "left untouched: choose another file")
+    return True
+
+
+def check_csv_output(out: str | os.PathLike[str], columns: list[str], what: str,
+                     inputs: Iterable[str | os.PathLike[str] | None] = ()) -> None:
+    """:func:`check_file_output` of a CSV with ``columns`` (one written before is ours)."""
+    check_file_output(out, what, inputs, lambda p: _csv_header(p) == list(columns), "a CSV")
 
 
 def written_by_us(path: Path, kind: str) -> bool:

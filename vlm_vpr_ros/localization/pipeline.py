@@ -50,7 +50,7 @@ def verify_and_stamp(hyp: Hypothesis, local: LocalFeatures | None, verifier: Ver
         model = localizer.error_model_for(hyp.prior) if hyp.prior is not None else None
         def weigh(h: Hypothesis) -> None:  # a prior with its own sigma: weight + guard
             if prior_trust.applies(h, policy):
-                prior_trust.weigh_trusted_prior(h)
+                prior_trust.weigh_trusted_prior(h, evidence=verifier.evidence)
 
         verifier.verify(hyp, local, model, trust_prior=policy.trusts(hyp),
                         level=policy.fix_min_p_correct, radii_calibrated=calibrated,
@@ -159,6 +159,11 @@ class LocalizationPipeline:
             local = v.query_features_from_sift(sift_pass)
             return QueryDescription(desc, local, {"descriptor_ms":
                                                   (time.perf_counter() - t0) * 1e3})
+        if v is not None and v.reuses_xfeat_of(self.descriptor):  # one XFeat pass for both
+            k = v.preset.query_max_keypoints
+            desc, xfeat_pass = self.descriptor.describe_with_xfeat(image, k)
+            return QueryDescription(desc, xfeat_pass.head(k), {
+                "descriptor_ms": (time.perf_counter() - t0) * 1e3})
         desc = self.describe(image)
         t1 = time.perf_counter()
         local = v.query_features(image) if v is not None and v.enabled else None

@@ -16,7 +16,10 @@ map as it was. One writer at a time: the map's writer lock (``PARENT/.MAP.lock``
 
 Maps may hold their reference images (teach maps built from a bag,
 :mod:`vlm_vpr_ros.maps.map_images`): adding to such a map copies the new images in; removing
-retires them like the replaced submap files (deleted by the next edit).
+retires them like the replaced submap files (deleted by the next edit). A map built from a
+folder of images records that folder's pictures (``source_images``): the record follows every
+edit (:func:`~vlm_vpr_ros.maps.map_images.edit_source_index`), so a picture added under a
+removed reference's name is never read as the old one.
 """
 
 from __future__ import annotations
@@ -285,6 +288,8 @@ def add_references(map_dir: str | os.PathLike[str], images_dir: str | os.PathLik
             if store_images:
                 map_images.store_images(tx, root, ids, image_index(path, manifest), gen,
                                         move_images)
+            map_images.edit_source_index(tx, gen, added=ids,
+                                         added_from=None if store_images else root)
             edit_features(tx, ref_map, gen, rewritten, [])
             finish_manifest(tx.new, list(entries.values()), gen, "add", len(ids), source)
             tx.commit()
@@ -300,12 +305,23 @@ def add_references(map_dir: str | os.PathLike[str], images_dir: str | os.PathLik
 def recalibrate(path: Path, store: Any) -> None:
     """After a committed edit of a map with local features: its leave-one-out calibration of
     p_correct again (the look-alikes of the map changed; docs/verification.md), under the
-    query conditions it was calibrated for (the default ones when it records none)."""
+    query conditions it was calibrated for (the default ones when it records none). When those
+    need the reference pictures and they are not reachable, the earlier calibration is kept
+    (a WARN says how to recalibrate), never replaced by a full-size-only one."""
     if store is None:
         return
     try:
         ref_map = ReferenceMap.load(path, verify=False)
-        calibrate_map(ref_map, conditions=calibrated_conditions(ref_map))
+        conditions = calibrated_conditions(ref_map)
+        need = [c for c in conditions or () if c != "full"]
+        why = need and map_images.pictures_problem(path, ref_map.manifest, ref_map.all_ids())
+        if why:  # a full-size-only calibration would silently replace the one it has
+            log.warning("%s: p_correct keeps its earlier calibration: conditions %s need the "
+                        "reference pictures: %s; recalibrate with 'vlm-vpr calibrate --map "
+                        "%s --conditions %s --reference-images DIR'", path, ",".join(need),
+                        why, path, ",".join(conditions))
+            return
+        calibrate_map(ref_map, conditions=conditions)
     except (ConfigError, DescriptorError) as exc:  # e.g. learned weights not at hand here
         log.warning("%s: p_correct keeps its earlier calibration (%s); recalibrate where the "
                     "matcher's weights are", path, exc)
@@ -376,6 +392,7 @@ def remove_references(map_dir: str | os.PathLike[str], ids: Iterable[str],
                     del index[i]
                     tx.retire(f"{IMAGES_DIR}/{i}")
                 write_image_index(tx, index, gen)
+            map_images.edit_source_index(tx, gen, removed=sorted(drop))
             edit_features(tx, ref_map, gen, rewritten, res.dropped)
             finish_manifest(tx.new, list(entries.values()), gen, "remove", len(drop), source)
             tx.commit()

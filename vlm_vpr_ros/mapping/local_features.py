@@ -2,7 +2,8 @@
 calibration (images: ``build-map``; bags: ``build-map --bag``; ``map add/remove``; Ray).
 
 * :class:`ReferenceExtractor`: the global descriptor and the local features of reference
-  images, in one SIFT pass for vlad_rootsift maps with the ``sift`` preset.
+  images, in one SIFT pass for vlad_rootsift maps with the ``sift`` preset and one XFeat pass
+  for vlad_xfeat maps verified with XFeat (``xfeat_mnn``, ``xfeat_lighterglue``).
 * :func:`store_features`: write a saved map's feature files (:mod:`vlm_vpr_ros.maps.features`)
   from the features of each reference id.
 * :func:`calibrate_map`: the leave-one-out calibration of ``p_correct``
@@ -24,7 +25,9 @@ from vlm_vpr_ros.config import from_mapping
 from vlm_vpr_ros.errors import ImageDecodeError, MapError
 from vlm_vpr_ros.files.images import decode_image_bytes
 from vlm_vpr_ros.localization.verification.components import create_feature, create_matcher
-from vlm_vpr_ros.localization.verification.p_correct import load_doc, loo_calibration, save_doc
+from vlm_vpr_ros.localization.verification.p_correct import (NOISE_MIN_DISTANCE_M, NOISE_PAIRS,
+                                                             load_doc, loo_calibration,
+                                                             noise_level, noise_pairs, save_doc)
 from vlm_vpr_ros.localization.verification.conditions import parse_condition, parse_conditions
 from vlm_vpr_ros.localization.verification.evidence import EvidenceConfig
 from vlm_vpr_ros.localization.verification.geometry import GeometryConfig, fundamental_inliers
@@ -73,6 +76,10 @@ class ReferenceExtractor:
                        and cfg.get("max_side") == vc.max_side
                        and cfg.get("contrast_threshold") == 0.04
                        and cfg.get("edge_threshold") == 10.0)
+        #: a vlad_xfeat map verified with XFeat: one XFeat pass per image serves both
+        self.shared_xfeat = (self.preset is not None and self.preset.feature == "xfeat"
+                             and hasattr(descriptor, "describe_with_xfeat")
+                             and descriptor.xfeat.identity() == self.extractor.identity())
 
     @property
     def enabled(self) -> bool:
@@ -95,6 +102,10 @@ class ReferenceExtractor:
                 out.append(d)
                 feats.append(RootSift.from_pass(xy, des, resp, size, scale, k))
             return np.stack(out).astype(np.float32), feats
+        if self.shared_xfeat:
+            pairs = [self.descriptor.describe_with_xfeat(im, k) for im in images]
+            return (np.stack([d for d, _ in pairs]).astype(np.float32),
+                    [f.head(k) for _, f in pairs])
         return (self.descriptor.describe(images),
                 [self.extractor.extract(im, k) for im in images])
 
@@ -199,8 +210,21 @@ def calibrate_map(ref_map: Any, max_queries: int = LOO_QUERIES, top_k: int = 20,
 
         bar = tqdm(desc="verification calibration", unit="query", disable=None, leave=False)
     with one_blas_thread():
+        # the matcher's noise level on unrelated pairs: the competitor floor of the evidence
+        t_noise = time.monotonic()
+        pairs = noise_pairs(coords, NOISE_PAIRS, NOISE_MIN_DISTANCE_M,
+                            np.random.default_rng(seed + 1),
+                            copies_of=lambda g: copies.get(g, ()))
+        noise = noise_level([int(inliers_of(features_of(i), [features_of(j)])[0])
+                             for i, j in pairs])
+        noise["seconds"] = round(time.monotonic() - t_noise, 1)
+        if not pairs:
+            log.warning("%s: no two references %.0f m apart: the %s matcher's noise level is "
+                        "not measured (competitor floor %d)", ref_map.path,
+                        NOISE_MIN_DISTANCE_M, preset.matcher, noise["floor"])
+        cfg = EvidenceConfig(competitor_floor=noise["floor"])
         doc = loo_calibration(coords, search, features_of, inliers_of, top_k,
-                              EvidenceConfig(), max_queries, seed,
+                              cfg, max_queries, seed,
                               (lambda d, n: bar.update(1)) if bar is not None else None,
                               conds, degraded, n_deg,
                               copies_of=lambda g: copies.get(g, ()))
@@ -209,6 +233,7 @@ def calibrate_map(ref_map: Any, max_queries: int = LOO_QUERIES, top_k: int = 20,
     doc["min_long_side_px"] = int(smallest[0]) if smallest else 0
     doc["feature"] = store.feature
     doc["preset"] = store.preset
+    doc["noise"] = noise
     save_doc(ref_map, doc)
     loo = doc["loo"]
     log.info("verification calibration: %d leave-one-out queries (%d wrong, %d right) under "
@@ -267,6 +292,8 @@ def _degraded_queries(ref_map: Any, conds: Sequence[str], images_dir: str | Path
     if not verifier.enabled:
         return None, []
     shared = verifier.reuses_sift_of(descriptor)
+    shared_xfeat = verifier.reuses_xfeat_of(descriptor)
+    k_query = verifier.preset.query_max_keypoints
     ids = ref_map.all_ids()
     smallest: list[int] = []
 
@@ -291,6 +318,9 @@ def _degraded_queries(ref_map: Any, conds: Sequence[str], images_dir: str | Path
             if shared:
                 desc, sift_pass = descriptor.describe_with_sift(frame)
                 local = verifier.query_features_from_sift(sift_pass)
+            elif shared_xfeat:
+                desc, local = descriptor.describe_with_xfeat(frame, k_query)
+                local = local.head(k_query)
             else:
                 desc, local = descriptor.describe_one(frame), verifier.query_features(frame)
             vec = np.asarray(desc, np.float32).reshape(1, -1)

@@ -7,7 +7,9 @@ where they came from: the manifest's ``source_images`` names the folder (absolut
 ``source_images.npy`` beside the manifest (listed in ``files``) the size and sha256 of every
 picture as the build read it. :class:`SourceImages` reads a picture from there (or from the
 folder a user names instead) only when its bytes are still those: a changed or missing picture
-is skipped with one WARN naming it, never shown in place of the one the map was built from."""
+is skipped with one WARN naming it, never shown in place of the one the map was built from.
+The record follows the map's edits (:func:`edit_source_index`): a removed reference leaves it,
+and a reference added under a removed one's name is never vouched for by the old record."""
 
 from __future__ import annotations
 
@@ -104,25 +106,77 @@ def record_source_images(map_dir: str | os.PathLike[str], folder: str | os.PathL
     listed in ``files``); the manifest is replaced last. Returns the new manifest (used by
     ``build-map --images``)."""
     path, folder = Path(map_dir), Path(folder).expanduser().absolute()
+    table = _index_table(_digest_rows(folder, sorted(set(ids)), path))
+    manifest = json.loads((path / MANIFEST).read_text(encoding="utf-8"))
+    atomic_save_npy(path / SOURCE_INDEX, table)
+    manifest["files"].update(file_table(path, [SOURCE_INDEX]))
+    manifest["source_images"] = {"folder": str(folder), "index": SOURCE_INDEX,
+                                 "count": len(table), "check": "bytes+sha256"}
+    atomic_write_json(path / MANIFEST, manifest)
+    return manifest
+
+
+def _digest_rows(folder: Path, ids: Sequence[str], label: Path) -> list[tuple]:
+    """``(id, bytes, sha256)`` rows of the pictures ``ids`` in ``folder`` as they are now."""
     rows = []
-    for ref_id in sorted(set(ids)):
+    for ref_id in ids:
         p = folder / safe_rel(ref_id)
         try:
             with open(p, "rb") as fh:
                 digest = hashlib.file_digest(fh, "sha256").digest()
                 rows.append((ref_id.encode("utf-8"), os.fstat(fh.fileno()).st_size,
                              np.frombuffer(digest, np.uint8)))
-        except OSError as exc:  # gone since the build read it: never shown
-            log.warning("%s: reference %s is not recorded (%s)", path, ref_id, exc)
+        except OSError as exc:  # gone since the build (or the edit) read it: never shown
+            log.warning("%s: reference %s is not recorded (%s)", label, ref_id, exc)
+    return rows
+
+
+def _index_table(rows: Sequence[tuple]) -> np.ndarray:
+    """The :data:`SOURCE_INDEX` table of ``rows``, sorted by id (binary-searched)."""
     width = max([len(r[0]) for r in rows] + [1])
-    table = np.array(rows, dtype=[("id", f"S{width}"), ("bytes", "<i8"), ("sha256", "u1", (32,))])
-    manifest = json.loads((path / MANIFEST).read_text(encoding="utf-8"))
-    atomic_save_npy(path / SOURCE_INDEX, table)
-    manifest["files"].update(file_table(path, [SOURCE_INDEX]))
-    manifest["source_images"] = {"folder": str(folder), "index": SOURCE_INDEX,
-                                 "count": len(rows), "check": "bytes+sha256"}
-    atomic_write_json(path / MANIFEST, manifest)
-    return manifest
+    table = np.array(list(rows), dtype=[("id", f"S{width}"), ("bytes", "<i8"),
+                                        ("sha256", "u1", (32,))])
+    return np.sort(table, order="id") if len(table) else table
+
+
+def _same_folder(a: Path, b: Path) -> bool:
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return Path(os.path.abspath(a)) == Path(os.path.abspath(b))
+
+
+def edit_source_index(tx: Transaction, gen: int, removed: Sequence[str] = (),
+                      added: Sequence[str] = (), added_from: Path | None = None) -> None:
+    """Make the build's picture record follow a map edit (``map add`` / ``map remove``): a
+    removed reference leaves the record, and so does every added one (a new picture under an
+    old name must never pass the old picture's size and sha256), except references added
+    from the recorded folder itself, which are recorded as they are now. References added
+    from another folder are then not in the record: :class:`SourceImages` shows no picture for
+    them (one WARN), never the build folder's picture of the same name. Written under a new,
+    generation-stamped name like every file an edit writes."""
+    entry = _source_entry(tx.path, tx.old)
+    if entry is None or not (removed or added):
+        return
+    try:
+        old = SourceIndex.open(tx.path, tx.old, entry["index"]).table
+    except MapError as exc:  # an unusable record shows nothing anyway; the edit goes on
+        log.warning("%s: the index of the pictures the map was built from is unusable (%s); "
+                    "left as it is", tx.path, exc)
+        return
+    out = {r["id"].decode("utf-8"): (r["id"], int(r["bytes"]), np.asarray(r["sha256"]))
+           for r in old}
+    for ref_id in (*removed, *added):
+        out.pop(ref_id, None)
+    if added and added_from is not None and _same_folder(added_from, Path(entry["folder"])):
+        out.update((r[0].decode("utf-8"), r) for r in _digest_rows(added_from, added, tx.path))
+    table = _index_table([(k.encode("utf-8"), b, d) for k, (_, b, d) in out.items()])
+    rel = f"source_images.g{gen}.npy"
+    atomic_save_npy(tx.path / rel, table)
+    tx.new["files"].pop(entry["index"], None)
+    tx.record(rel)
+    tx.new["source_images"] = {**entry, "index": rel, "count": len(table),
+                               "generation": gen}
 
 
 class SourceIndex:
@@ -229,6 +283,33 @@ class SourceImages:
     def _warn(self, p: Path, kind: str, what: str) -> None:
         _warn_once((self.label, str(p), kind), "%s: reference picture %s %s: not shown",
                    self.label, p, what)
+
+
+def pictures_problem(map_dir: str | os.PathLike[str], manifest: Mapping[str, Any],
+                     ids: Sequence[str], override: str | os.PathLike[str] = "",
+                     sample: int = 8) -> str:
+    """Why the reference pictures of a map cannot be read ("" when they can): the check a
+    calibration under reduced query conditions makes before it replaces the one it has (a
+    calibration without pictures would silently cover full-size queries only). The folder of
+    :meth:`SourceImages.for_map` must exist and at least one of ``sample`` pictures spread over
+    ``ids`` must read and pass the build's record."""
+    pictures = SourceImages.for_map(map_dir, manifest, override)
+    recorded = None if override or manifest.get("images") else _source_entry(map_dir, manifest)
+    folder = pictures.folder or (Path(recorded["folder"]) if recorded else None)
+    if folder is None:
+        return ("the map holds no pictures and records no folder it was built from "
+                "(--reference-images DIR)")
+    if not folder.is_dir():
+        return (f"the picture folder {folder} is not there (moved or deleted? "
+                "--reference-images DIR)")
+    if not ids:
+        return ""
+    step = max(1, len(ids) // max(1, sample))
+    tried = list(ids[::step][:sample])
+    if any(pictures.read(i) is not None for i in tried):
+        return ""
+    return (f"none of {len(tried)} pictures tried (e.g. {tried[0]}) reads from "
+            f"{pictures.folder} as the map recorded it (--reference-images DIR)")
 
 
 def image_index(map_dir: Path, manifest: Mapping[str, Any]) -> dict[str, dict]:

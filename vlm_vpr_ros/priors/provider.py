@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import abc
 import concurrent.futures as cf
+import math
 import os
 import time
 from dataclasses import dataclass, field
@@ -17,7 +18,32 @@ from typing import Any
 
 import numpy as np
 
+from vlm_vpr_ros.geodesy import MAX_DISTANCE_KM
 from vlm_vpr_ros.redact import redact
+
+#: the range of a prior's own 1-sigma (km), checked wherever a prior enters (a priors CSV's
+#: ``sigma_m``, the ``fixed`` provider's ``sigma_km``, the robot's estimate grown with age):
+#: above, the prior error model's own range (a scale of at most half the Earth's circumference);
+#: below, 1 cm: no position source is more precise, and far narrower scales overflow the
+#: model's concentration (R / sigma)^2 (docs/priors.md)
+MIN_PRIOR_SIGMA_KM = 1.0e-5
+MAX_PRIOR_SIGMA_KM = MAX_DISTANCE_KM
+
+
+def prior_sigma_problem(sigma_km: float, unit: str = "km") -> str:
+    """Why ``sigma_km`` cannot be a prior's own 1-sigma ("" when it can): the one check of a
+    prior's sigma; callers name where it came from (file:line, option, topic). ``unit``
+    ("km" or "m"): the unit the message speaks, the one the user wrote."""
+    scale = {"km": 1.0, "m": 1000.0}[unit]
+    try:
+        s = float(sigma_km)
+    except (TypeError, ValueError):
+        return f"{sigma_km!r} is not a number"
+    if math.isfinite(s) and MIN_PRIOR_SIGMA_KM <= s <= MAX_PRIOR_SIGMA_KM:
+        return ""
+    return (f"{s * scale:g} {unit} is outside [{MIN_PRIOR_SIGMA_KM * scale:g}, "
+            f"{MAX_PRIOR_SIGMA_KM * scale:.0f}] {unit} (1 cm to half the Earth's "
+            "circumference, the prior error model's range)")
 
 
 @dataclass(frozen=True)

@@ -10,8 +10,12 @@ one. A query then gets it as a :class:`~vlm_vpr_ros.priors.provider.Prior` whose
 
 (the error of dead reckoning grows about linearly with time since the last absolute
 position), ``age`` measured from the estimate's stamp on the node's clock. An estimate older
-than ``max_age_s`` is *stale*: not used. The prior provider the node also has (the VLM, a fixed
-hint, ...) is the fallback, in the order ``order`` says:
+than ``max_age_s`` is *stale*: not used. Its sigma passes the one check of every prior's sigma
+(:func:`~vlm_vpr_ros.priors.provider.prior_sigma_problem`, docs/priors.md) with a tighter top:
+an estimate whose sigma, as sent or grown with age, is above ``MAX_PRIOR_SIGMA_M`` (1000 km) is
+*too uncertain*: not used, like a stale one (never clamped: a clamped sigma would be a lie),
+and a sigma under 1 cm (no source is more precise) is raised to 1 cm. The prior provider the
+node also has (the VLM, a fixed hint, ...) is the fallback, in the order ``order`` says:
 
 * ``topic_first``: the robot's estimate while it is fresh, else the provider;
 * ``provider_first``: the provider, and the robot's estimate when the provider gives none
@@ -35,11 +39,14 @@ from typing import Callable
 
 from vlm_vpr_ros.errors import ConfigError
 from vlm_vpr_ros.geodesy import valid_latlon
-from vlm_vpr_ros.priors.provider import Prior, PriorProvider, PriorQuery, PriorResult
+from vlm_vpr_ros.priors.provider import (MIN_PRIOR_SIGMA_KM, Prior, PriorProvider, PriorQuery,
+                                         PriorResult)
 
 log = logging.getLogger(__name__)
 ORDERS = ("topic_first", "provider_first")
-#: a sigma above this (m) is no prior worth the name (an uninitialised filter says 1e9)
+TOO_UNCERTAIN = "too uncertain"
+#: a sigma above this (m) is no prior worth the name (an uninitialised filter says 1e9); inside
+#: every prior's range (provider.MAX_PRIOR_SIGMA_KM, half the Earth's circumference)
 MAX_PRIOR_SIGMA_M = 1.0e6
 
 
@@ -70,6 +77,19 @@ class TopicPriorConfig:
                 raise ConfigError(f"prior topic {name} must be >= 0, got {v}")
         if not (math.isfinite(self.max_age_s) and self.max_age_s > 0):
             raise ConfigError(f"prior topic max_age_s must be > 0, got {self.max_age_s}")
+        horizon = self.usable_s(0.0)
+        if horizon < self.max_age_s:
+            log.warning("prior topic: with growth %g m/s an estimate's sigma passes %g km "
+                        "after at most %.0f s, before max_age_s %g s: older ones are refused "
+                        "as too uncertain", self.growth_m_per_s, MAX_PRIOR_SIGMA_M / 1000.0,
+                        horizon, self.max_age_s)
+
+    def usable_s(self, sigma_m: float) -> float:
+        """How long (s) an estimate of ``sigma_m`` stays usable: until it is stale or its
+        grown sigma passes ``MAX_PRIOR_SIGMA_M``, whichever comes first."""
+        if self.growth_m_per_s <= 0:
+            return self.max_age_s
+        return min(self.max_age_s, (MAX_PRIOR_SIGMA_M - sigma_m) / self.growth_m_per_s)
 
 
 def sigma_from_covariance(cxx: float, cxy: float, cyy: float) -> float:
@@ -105,6 +125,15 @@ def check_estimate(est: RobotEstimate, now_s: float, cfg: TopicPriorConfig) -> s
 def grown_sigma_m(est: RobotEstimate, now_s: float, growth_m_per_s: float) -> float:
     """The estimate's sigma grown with its age (module docstring)."""
     return est.sigma_m + growth_m_per_s * max(0.0, now_s - est.stamp_s)
+
+
+def _with_topic_reason(res: PriorResult, own: PriorResult) -> PriorResult:
+    """The provider's failure, saying also that the robot's estimate was refused as too
+    uncertain (an answer without a prior must not hide that the robot had one)."""
+    if not own.reason.startswith(TOO_UNCERTAIN):
+        return res
+    return PriorResult(None, res.source, f"{res.reason}; topic: {own.reason}", res.latency_s,
+                       res.raw_text, res.extra)
 
 
 def _kind(why: str) -> str:
@@ -166,7 +195,11 @@ class TopicPrior(PriorProvider):
         if age > self.config.max_age_s:
             return None, f"stale ({age:.0f} s old)"
         sigma = grown_sigma_m(est, now, self.config.growth_m_per_s)
-        return Prior(est.lat, est.lon, f"{self.name}:{est.source}", sigma / 1000.0), ""
+        if sigma > MAX_PRIOR_SIGMA_M:
+            return None, (f"{TOO_UNCERTAIN} (sigma grown to {sigma / 1000.0:.0f} km in "
+                          f"{age:.0f} s, more than {MAX_PRIOR_SIGMA_M / 1000.0:g} km)")
+        sigma_km = max(sigma / 1000.0, MIN_PRIOR_SIGMA_KM)  # the floor of every prior's sigma
+        return Prior(est.lat, est.lon, f"{self.name}:{est.source}", sigma_km), ""
 
     def _own(self) -> PriorResult:
         prior, why = self.current()
@@ -176,13 +209,15 @@ class TopicPrior(PriorProvider):
         return PriorResult(prior, self.name, extra={"sigma_m": prior.sigma_km * 1000.0})
 
     def request(self, query: PriorQuery) -> "cf.Future[PriorResult]":
+        first = None
         if self.config.order == "topic_first":
-            own = self._own()
-            if own.ok:
+            first = self._own()
+            if first.ok:
                 fut: cf.Future[PriorResult] = cf.Future()
-                fut.set_result(own)
+                fut.set_result(first)
                 return fut
-            return self.fallback.request(query)
+            if not first.reason.startswith(TOO_UNCERTAIN):
+                return self.fallback.request(query)
         out: cf.Future[PriorResult] = cf.Future()
         inner = self.fallback.request(query)
 
@@ -192,8 +227,8 @@ class TopicPrior(PriorProvider):
             except BaseException as exc:  # noqa: BLE001 - includes CancelledError
                 res = PriorResult.failure(self.fallback.name, f"error: {exc!r}")
             if not res.ok:
-                own = self._own()
-                res = own if own.ok else res
+                own = first or self._own()
+                res = own if own.ok else _with_topic_reason(res, own)
             if not out.done():
                 out.set_result(res)
 

@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import logging
-import math
 import os
 
-from vlm_vpr_ros.errors import PriorError
+from vlm_vpr_ros.errors import DataError, PriorError
 from vlm_vpr_ros.files.csvio import read_rows, strict_float, unique_rows
 from vlm_vpr_ros.geodesy import valid_latlon
-from vlm_vpr_ros.priors.provider import KeyedTable, Prior, PriorProvider, PriorQuery, PriorResult
+from vlm_vpr_ros.priors.provider import (KeyedTable, Prior, PriorProvider, PriorQuery,
+                                         PriorResult, prior_sigma_problem)
 
 log = logging.getLogger(__name__)
 
@@ -33,9 +33,10 @@ class FixedPrior(PriorProvider):
         if not valid_latlon(lat, lon):
             raise PriorError(f"fixed prior ({lat}, {lon}) is not a valid WGS-84 position")
         if sigma_km is not None:
+            why = prior_sigma_problem(sigma_km)
+            if why:
+                raise PriorError(f"fixed prior option sigma_km={sigma_km}: {why}")
             sigma_km = float(sigma_km)
-            if not (math.isfinite(sigma_km) and sigma_km > 0):
-                raise PriorError(f"fixed prior sigma_km must be > 0, got {sigma_km}")
         self.prior = Prior(lat, lon, self.name, sigma_km)
 
     def _compute(self, query: PriorQuery) -> PriorResult:
@@ -57,8 +58,10 @@ def read_prior_table(path: str | os.PathLike[str]
     filter estimate ("I was here, +-300 m"); it has the meaning of the ``topic`` prior's σ
     (docs/priors.md), so a recorded robot prior may be trusted for fixes like an operator's
     hint (``trust_operator_prior``). A blank cell: no σ of its own (the source's fitted error
-    model). A row whose ``sigma_m`` is not a positive finite number is treated as "no prior"
-    (counted in the same warning as a bad position): never a prior with a made-up σ."""
+    model). A ``sigma_m`` outside the range of every prior's sigma (1 cm to half the Earth's
+    circumference: :func:`~vlm_vpr_ros.priors.provider.prior_sigma_problem`), or not a
+    number, is a DataError naming the file, line and field: never a prior with a made-up σ,
+    and never a run whose every query fails later."""
     items = []
     bad = 0
     cols, rows = read_rows(path, "priors CSV", ("file", "lat", "lon"))
@@ -69,9 +72,10 @@ def read_prior_table(path: str | os.PathLike[str]
         text = (row.get("sigma_m") or "").strip() if has_sigma else ""
         if text:
             sigma_m = strict_float(text)
-            if sigma_m is None or not (math.isfinite(sigma_m) and sigma_m > 0):
-                bad += 1
-                continue
+            why = (prior_sigma_problem(sigma_m / 1000.0, "m") if sigma_m is not None
+                   else f"{text!r} is not a number")
+            if why:
+                raise DataError(f"priors CSV {path}:{n}: field sigma_m: {why}")
             sigma_km = sigma_m / 1000.0
         if lat is None or lon is None:
             bad += 1
@@ -81,8 +85,8 @@ def read_prior_table(path: str | os.PathLike[str]
         else:
             bad += 1
     if bad:
-        log.warning("%s: %d row(s) without a valid lat/lon (or at 0, 0) or sigma_m are "
-                    "treated as 'no prior'", path, bad)
+        log.warning("%s: %d row(s) without a valid lat/lon (or at 0, 0) are treated as "
+                    "'no prior'", path, bad)
     return unique_rows(items, path, "file")
 
 

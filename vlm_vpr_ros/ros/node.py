@@ -13,9 +13,16 @@ Both executables share :class:`_Wiring`, in four steps that are the lifecycle tr
 * ``stop`` (deactivate): subscriptions and worker gone, map kept; ``unload`` (cleanup) frees it;
 * ``shutdown``: as cleanup, then the process ends (exit code 0).
 
-The plain node runs load + start in its constructor. Callback groups: images, the map_reload
-service and the diagnostics timer each have their own mutually exclusive group, the relocalize
-services one reentrant group, under a MultiThreadedExecutor with a thread for each relocalize
+Every caller in progress (relocalize services, action goals) gets its answer before the
+services and the action server are destroyed: cleanup and shutdown answer them NOT_ACTIVE and
+wait for them (ros/requests.py); on SIGINT / SIGTERM the node does the same while the executor
+still spins (rclpy's own signal handler is off: it would invalidate the context first, and a
+goal could then no longer be ended).
+
+The plain node runs load + start in its constructor. Callback groups: images and the
+diagnostics timer each have their own mutually exclusive group, the relocalize services and
+action one reentrant group, map_reload its own reentrant one (one reload at a time, others
+answered at once), under a MultiThreadedExecutor with a thread for each relocalize
 caller that may wait (``MAX_WAITERS``) on top of the four the other callbacks need; queries run
 on the runtime's worker thread, so a slow VLM never delays image intake and waiting callers
 never block the executor.
@@ -24,8 +31,10 @@ never block the executor.
 from __future__ import annotations
 
 import logging
+import signal
 import sys
 import threading
+import time
 from typing import Any
 
 import rclpy
@@ -33,12 +42,14 @@ from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.node import Node
+from rclpy.signals import SignalHandlerOptions
 from rclpy.task import Future
 
 from vlm_vpr_ros.errors import ConfigError, VlmVprError
 from vlm_vpr_ros.runtime.params import NESTED, PARAMETER_SPECS, requested_parameters
 from vlm_vpr_ros.runtime.worker import MAX_WAITERS
 from vlm_vpr_ros.ros.malloc import tune_malloc
+from vlm_vpr_ros.ros.requests import DRAIN_S
 from vlm_vpr_ros.ros.wiring import _Wiring
 from vlm_vpr_ros.redact import redact
 
@@ -201,8 +212,8 @@ def _run(cls: type, args: list[str] | None) -> int:
         print(f"[FATAL] [{NODE_NAME}]: invalid configuration, not starting: {exc}",
               file=sys.stderr)
         return 2
-    try:
-        rclpy.init(args=argv)
+    try:  # SIGINT / SIGTERM: ours (_on_signal), so the goals end before the context does
+        rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     except _rclpy.RCLError as exc:  # e.g. a malformed --ros-args
         print(f"[FATAL] [{NODE_NAME}]: invalid arguments, not starting: "
               f"{str(exc).splitlines()[0]}", file=sys.stderr)
@@ -215,15 +226,26 @@ def _run(cls: type, args: list[str] | None) -> int:
         node = cls(requested)
     except VlmVprError as exc:
         return _fatal(logger, exc)
+    except KeyboardInterrupt:  # SIGINT while the map loads (Python's handler until ours)
+        rclpy.try_shutdown()
+        return 0
     executor = MultiThreadedExecutor(num_threads=EXECUTOR_THREADS)
     executor.add_node(node)
+    signals: list[int] = []
+
+    def _on_signal(signum: int, _frame: Any) -> None:
+        signals.append(signum)
+        executor.wake()
+
+    previous = {sig: signal.signal(sig, _on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         # not spin_until_future_complete: rclpy's executor adds a done-callback to the future
         # on every callback it dispatches, and node.finished never completes on the plain node
         # (a list growing by ~80 closures a second under a 30 Hz camera)
         node.finished.add_done_callback(lambda _f: executor.wake())
-        while rclpy.ok() and not node.finished.done():
+        while rclpy.ok() and not node.finished.done() and not signals:
             executor.spin_once(timeout_sec=0.5)
+        _drain(node, executor, signals)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
@@ -231,7 +253,24 @@ def _run(cls: type, args: list[str] | None) -> int:
         executor.shutdown()
         node.destroy_node()
         rclpy.try_shutdown()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     return 0
+
+
+def _drain(node: Any, executor: MultiThreadedExecutor, signals: list[int]) -> None:
+    """Answer every caller in progress (NOT_ACTIVE) and let the executor send the answers
+    and the goals' results before anything is destroyed; at most DRAIN_S (a second signal
+    ends it at once)."""
+    n_signals = len(signals)
+    node.end_requests()
+    deadline = time.monotonic() + DRAIN_S
+    while (rclpy.ok() and node.requests_in_progress() and time.monotonic() < deadline
+           and len(signals) <= n_signals):
+        executor.spin_once(timeout_sec=0.05)
+    grace = time.monotonic() + 0.3  # the results go out from executor tasks
+    while rclpy.ok() and time.monotonic() < grace and len(signals) <= n_signals:
+        executor.spin_once(timeout_sec=0.05)
 
 
 def main(args: list[str] | None = None) -> int:

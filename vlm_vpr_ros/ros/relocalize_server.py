@@ -7,8 +7,13 @@
   the reason when there is no fix);
 * action ``relocalize`` (``vlm_vpr_interfaces/action/Relocalize``): the same with feedback by
   stage (waiting for a frame, asking the prior, retrieving, verifying) and cancel; a goal
-  whose ``timeout_s`` is not a positive finite number is rejected (WARN naming the reason: the
-  action protocol carries none).
+  whose ``timeout_s`` is not a positive finite number of at most ``MAX_TIMEOUT_S`` is rejected
+  (WARN naming the reason: the action protocol carries none); a goal beyond the admission
+  limit is accepted and aborted at once with ``OUTCOME_BUSY`` (:mod:`vlm_vpr_ros.ros.requests`).
+
+Both use the node's one request QoS (:data:`~vlm_vpr_ros.ros.requests.REQUEST_QOS`), and every
+goal ends (succeeded, aborted, cancelled) before the action server is destroyed
+(:meth:`TypedRelocalize.destroy` waits for the callers in progress, :class:`CallGate`).
 
 The waiting and the rules (who still waits, abandoned answers never published) are the pure
 runtime's (:meth:`vlm_vpr_ros.runtime.worker.QueryRuntime.relocalize_request`); messages are
@@ -17,7 +22,6 @@ built by :mod:`msg_adapters.answer`. The Trigger services stay (the compatibilit
 
 from __future__ import annotations
 
-import math
 import time
 from typing import Any
 
@@ -28,22 +32,14 @@ from vlm_vpr_interfaces.srv import Relocalize as RelocalizeSrv
 
 from msg_adapters.answer import answer_msg
 from msg_adapters.navsat import fix_fields
+from vlm_vpr_ros.ros.requests import DRAIN_S, REQUEST_QOS, CallGate, timeout_problem
 from vlm_vpr_ros.runtime.relocalize import (STAGES, RelocalizeKind, RelocalizeResult,
                                             no_answer_text)
 
 TYPED_SERVICE = "relocalize_typed"
 ACTION = "relocalize"
-
-
-def timeout_problem(timeout_s: float, allow_default: bool) -> str:
-    """Why a requested timeout is refused ("" when fine); 0 means the node's default only
-    where ``allow_default`` (the service)."""
-    t = float(timeout_s)
-    if allow_default and t == 0.0:
-        return ""
-    if not math.isfinite(t) or t <= 0:
-        return f"timeout_s must be a positive finite number of seconds, got {t}"
-    return ""
+#: after a goal's execute callback returned, rclpy sends its result from an executor task
+RESULT_GRACE_S = 0.3
 
 
 def kind_of(request: Any) -> RelocalizeKind:
@@ -53,17 +49,34 @@ def kind_of(request: Any) -> RelocalizeKind:
 class TypedRelocalize:
     """The typed service and the action of one node (made at configure, gone at cleanup)."""
 
-    def __init__(self, node: Any) -> None:
+    def __init__(self, node: Any, gate: CallGate) -> None:
         self.node = node
+        self.gate = gate  # the node's callers in progress (shared with the Trigger services)
+        self._last_end = -RESULT_GRACE_S  # when the latest goal's execute callback returned
         group = ReentrantCallbackGroup()
         self.service = node.create_service(RelocalizeSrv, TYPED_SERVICE, self._on_service,
-                                           callback_group=group)
+                                           qos_profile=REQUEST_QOS, callback_group=group)
         self.action = ActionServer(node, RelocalizeAction, ACTION, self._execute,
                                    goal_callback=self._on_goal,
+                                   handle_accepted_callback=self._on_accepted,
                                    cancel_callback=lambda _goal: CancelResponse.ACCEPT,
+                                   goal_service_qos_profile=REQUEST_QOS,
+                                   result_service_qos_profile=REQUEST_QOS,
+                                   cancel_service_qos_profile=REQUEST_QOS,
                                    callback_group=group)
 
     def destroy(self) -> None:
+        """Every caller in progress answered first (the runtime was stopped: they hear
+        NOT_ACTIVE), then the results sent, then the service and the action server go."""
+        self.gate.close()
+        drained = self.gate.wait_idle(DRAIN_S)
+        if not drained:
+            self.node.get_logger().error(
+                f"{self.gate.in_progress} relocalize callers still in progress after "
+                f"{DRAIN_S:g} s: destroying the action server anyway")
+        # rclpy sends a goal's result from a task the executor runs after the execute
+        # callback returned: give it that moment (no public hook tells when it is sent)
+        time.sleep(max(0.0, RESULT_GRACE_S - (time.monotonic() - self._last_end)))
         self.node.destroy_service(self.service)
         self.action.destroy()
 
@@ -75,7 +88,10 @@ class TypedRelocalize:
         if out is not None and out.hypothesis is not None:
             fields = fix_fields(out.hypothesis, node.policy)
         frame_id = (node.cfg.frame_id or out.frame.frame_id) if out is not None else ""
-        if not message and out is None:
+        if not message and out is None and res.code == "not_active" and not self.gate.open:
+            message = ("the node is shutting down (cleanup, shutdown or a signal): the request "
+                       "ended without an answer [not_active]")
+        elif not message and out is None:
             message = no_answer_text(res, node.resolve_topic_name("fix"))
         return answer_msg(res, fields, frame_id, message)
 
@@ -93,19 +109,40 @@ class TypedRelocalize:
             self.node.get_logger().warning(f"{TYPED_SERVICE}: request rejected: {why}")
             response.answer = self._answer(RelocalizeResult("rejected"), why)
             return response
-        wait_s = float(request.timeout_s) or self.node.cfg.relocalize_wait_s
-        response.answer = self._answer(self._run(request, wait_s))
+        if not self.gate.enter():  # closing: answered at once
+            response.answer = self._answer(RelocalizeResult("not_active"))
+            return response
+        try:
+            wait_s = float(request.timeout_s) or self.node.cfg.relocalize_wait_s
+            response.answer = self._answer(self._run(request, wait_s))
+        finally:
+            self.gate.leave()
         return response
 
     # -- action ----
     def _on_goal(self, goal: Any) -> GoalResponse:
         why = timeout_problem(goal.timeout_s, allow_default=False)
+        if not why and not self.gate.open:
+            why = "the node is shutting down"
         if why:
             self.node.get_logger().warning(f"{ACTION} action: goal rejected: {why}")
             return GoalResponse.REJECT
         return GoalResponse.ACCEPT
 
+    def _on_accepted(self, goal_handle: Any) -> None:
+        """An accepted goal counts as in progress until its execute callback returned (its
+        result is set then), so destroy() never cuts a goal short."""
+        self.gate.enter(force=True)
+        goal_handle.execute()
+
     def _execute(self, goal_handle: Any) -> Any:
+        try:
+            return self._execute_goal(goal_handle)
+        finally:
+            self._last_end = time.monotonic()
+            self.gate.leave()
+
+    def _execute_goal(self, goal_handle: Any) -> Any:
         t0 = time.monotonic()
         request = goal_handle.request
 
@@ -114,13 +151,17 @@ class TypedRelocalize:
                                            elapsed_s=time.monotonic() - t0)
             goal_handle.publish_feedback(fb)
 
-        res = self._run(request, float(request.timeout_s),
-                        cancelled=lambda: goal_handle.is_cancel_requested, on_stage=on_stage)
+        if self.gate.open:
+            res = self._run(request, float(request.timeout_s),
+                            cancelled=lambda: goal_handle.is_cancel_requested,
+                            on_stage=on_stage)
+        else:  # accepted just before the node started closing
+            res = RelocalizeResult("not_active")
         result = RelocalizeAction.Result(answer=self._answer(res))
         if res.code == "cancelled" and goal_handle.is_cancel_requested:
             goal_handle.canceled()
         elif res.code in ("answered", "failed"):
             goal_handle.succeed()
-        else:
+        else:  # no_frame, timeout, not_active, busy (not admitted: retry later)
             goal_handle.abort()
         return result

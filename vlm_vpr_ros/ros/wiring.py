@@ -12,6 +12,7 @@ import copy
 import functools
 import gc
 import os
+import threading
 import time
 from typing import Any
 
@@ -28,6 +29,7 @@ from vlm_vpr_ros.priors import create_prior_provider
 from vlm_vpr_ros.ros.malloc import trim_malloc
 from vlm_vpr_ros.ros.publishers import Outputs, fix_policy
 from vlm_vpr_ros.ros.relocalize_server import TypedRelocalize
+from vlm_vpr_ros.ros.requests import DRAIN_S, REQUEST_QOS, CallGate
 from vlm_vpr_ros.ros.robot_prior import RobotPriorInput
 from vlm_vpr_ros.ros.parameters import _Parameters
 from vlm_vpr_ros.runtime.params import NodeConfig
@@ -106,17 +108,21 @@ class _Wiring(_Parameters):
         self._stats = RuntimeStats(self._provider.name, cfg.mode)
         if cfg.publish_debug:
             self.outputs.ensure_debug()
-        # reentrant + a deep request queue: every caller of a burst waits for the shared
-        # query on its own executor thread (node.py sizes the executor for it)
+        # every request path: reentrant + the one deep request queue (ros/requests.py); a
+        # caller of a burst waits for the shared query on its own executor thread (node.py
+        # sizes the executor for the admission limit), map_reload answers a second caller at
+        # once while a reload runs
         reloc_group = ReentrantCallbackGroup()
+        self.gate = CallGate()
+        self._reloading = threading.Lock()
         self._own_services = [self.create_service(
             Trigger, name, functools.partial(self._on_relocalize, kind),
-            qos_profile=QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE),
-            callback_group=reloc_group) for name, kind in RELOCALIZE_SERVICES.items()]
+            qos_profile=REQUEST_QOS, callback_group=reloc_group)
+            for name, kind in RELOCALIZE_SERVICES.items()]
         self._own_services.append(self.create_service(
-            Trigger, "map_reload", self._on_map_reload,
-            callback_group=MutuallyExclusiveCallbackGroup()))
-        self._typed = TypedRelocalize(self)  # relocalize_typed service + relocalize action
+            Trigger, "map_reload", self._on_map_reload, qos_profile=REQUEST_QOS,
+            callback_group=ReentrantCallbackGroup()))
+        self._typed = TypedRelocalize(self, self.gate)  # relocalize_typed + relocalize action
         self._diag_timer = self.create_timer(cfg.diagnostics_period_s, self._publish_diagnostics,
                                              callback_group=MutuallyExclusiveCallbackGroup())
         self._images_group = MutuallyExclusiveCallbackGroup()
@@ -126,8 +132,23 @@ class _Wiring(_Parameters):
             f"({m.manifest.get('n_references', '?')} references, {len(m.submaps)} submaps, "
             f"descriptor {self.pipeline.descriptor.name}), prior {cfg.prior_provider}")
 
-    def _unload(self) -> None:
+    def end_requests(self) -> None:
+        """Stop admitting callers and answer every waiting one (NOT_ACTIVE): the runtime
+        stops. Their answers go out while the executor still spins (node.py drains them)."""
+        gate = getattr(self, "gate", None)
+        if gate is not None:
+            gate.close()
         self._stop()
+
+    def requests_in_progress(self) -> int:
+        gate = getattr(self, "gate", None)
+        return gate.in_progress if gate is not None else 0
+
+    def _unload(self) -> None:
+        self.end_requests()
+        if getattr(self, "gate", None) is not None and not self.gate.wait_idle(DRAIN_S):
+            self.get_logger().error(f"{self.gate.in_progress} callers still in progress after "
+                                    f"{DRAIN_S:g} s: destroying the services anyway")
         if getattr(self, "_diag_timer", None) is not None:
             self.destroy_timer(self._diag_timer)
             self._diag_timer = None
@@ -221,17 +242,32 @@ class _Wiring(_Parameters):
 
     def _on_relocalize(self, kind: RelocalizeKind, request, response):
         runtime = self.runtime
-        if runtime is None or not self._active:
+        if runtime is None or not self._active or not self.gate.enter():
             response.success = False
             response.message = f"{self.get_name()} is not active: activate it first"
             return response
-        response.success, response.message = runtime.relocalize(
-            self.cfg.relocalize_wait_s, self.resolve_topic_name("fix"), kind)
+        try:
+            response.success, response.message = runtime.relocalize(
+                self.cfg.relocalize_wait_s, self.resolve_topic_name("fix"), kind)
+        finally:
+            self.gate.leave()
         return response
 
     def _on_map_reload(self, request, response):
         """Swap in the map re-read from map_dir (e.g. grown by 'vlm-vpr map add') between two
-        queries; on failure the current map stays in use. Inactive: reloaded for activate."""
+        queries; on failure the current map stays in use. Inactive: reloaded for activate.
+        One reload at a time: a call during a reload is answered at once (call again)."""
+        if not self._reloading.acquire(blocking=False):
+            response.success = False
+            response.message = ("busy: a map reload is already running; call map_reload again "
+                                "when it has answered to read changes made since it started")
+            return response
+        try:
+            return self._map_reload(response)
+        finally:
+            self._reloading.release()
+
+    def _map_reload(self, response):
         runtime = self.runtime
         if runtime is not None:
             response.success, response.message = runtime.reload_map()

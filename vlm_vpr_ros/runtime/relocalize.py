@@ -95,6 +95,12 @@ class RelocalizeTicket:
             return True
 
     @property
+    def wanted(self) -> bool:
+        """Someone still wants the answer: a caller waits, or a detached request holds it."""
+        with self._lock:
+            return self.waiters > 0 or self.detached
+
+    @property
     def abandoned(self) -> bool:
         with self._lock:
             return self.waiters <= 0 and not self.detached and self.gave_up > 0
@@ -150,12 +156,14 @@ class RelocalizeTicket:
 class RelocalizeResult:
     """What one relocalize caller gets: ``code`` (:data:`OUTCOMES`), the shared outcome (the
     worker's QueryOutcome; None unless answered/failed), the seconds waited and the stages the
-    query went through."""
+    query went through. ``shared``: the caller gave up (timeout, cancel) while others still
+    wanted the answer, so it may still be published for them (never for this caller)."""
 
     code: str
     outcome: Any = None
     waited_s: float = 0.0
     stages: tuple[str, ...] = ()
+    shared: bool = False
 
 
 #: what happened to a relocalize request (vlm_vpr_interfaces/Answer OUTCOME_*)
@@ -190,9 +198,11 @@ def await_answer(ticket: RelocalizeTicket, wait_s: float,
         else:
             continue
         if ticket.leave():
+            shared = ticket.wanted  # another caller (or a wait-0 request) still holds it
             if give_up is not None:
                 give_up(ticket)
-            return RelocalizeResult(code, None, time.monotonic() - t0, tuple(ticket.stages))
+            return RelocalizeResult(code, None, time.monotonic() - t0, tuple(ticket.stages),
+                                    shared)
         ticket.wait(60.0)  # claimed: being published right now
         break
     out = ticket.outcome
@@ -205,19 +215,27 @@ def await_answer(ticket: RelocalizeTicket, wait_s: float,
 
 def no_answer_text(res: RelocalizeResult, fix_topic: str = "fix", label: str = "") -> str:
     """The sentence for a caller that got no outcome (``res.code`` other than answered /
-    failed), ending with the code in brackets."""
+    failed), ending with the code in brackets. A caller that gave up is told only what is true
+    for it: with others still waiting (``res.shared``) the answer may still be published for
+    them, so "it will not be published" is said only when nobody else wants it."""
     what, kind = "relocalization", f" ({label})" if label else ""
+    if res.shared:
+        fate = (f"other callers still wait for it, so it may still be published on {fix_topic} "
+                "for them (not as an answer to this call)")
+    else:
+        fate = "it will not be published as a relocalization"
     text = {
         "scheduled": (f"{what} scheduled{kind} (not waited for: relocalize_wait_s 0); the fix "
                       f"will be published on {fix_topic}"),
         "busy": (f"{what} scheduled{kind}, shared with the callers already waiting for it; the "
                  f"fix will be published on {fix_topic}"),
         "no_frame": (f"{what} gave no result within {res.waited_s:.1f} s: no usable frame "
-                     "arrived (camera silent?); the request is dropped, it will not be "
-                     "published"),
+                     "arrived (camera silent?); "
+                     + (fate if res.shared else "the request is dropped, it will not be "
+                        "published")),
         "timeout": (f"{what} gave no result within {res.waited_s:.1f} s (stages: "
-                    f"{', '.join(res.stages)}); it will not be published as a relocalization"),
-        "cancelled": f"{what} cancelled; it will not be published as a relocalization",
+                    f"{', '.join(res.stages)}); {fate}"),
+        "cancelled": f"{what} cancelled; {fate}",
         "not_active": "the node is not active (or stopped localizing): activate it first",
     }.get(res.code, f"{what}: {res.code}")
     return text if res.code in ("scheduled", "busy") else f"{text} [{res.code}]"

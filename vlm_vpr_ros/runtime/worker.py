@@ -45,8 +45,9 @@ from vlm_vpr_ros.runtime.stats import RuntimeStats, Throttle
 
 log = logging.getLogger(__name__)
 MODES = ("continuous", "on_trigger")
-#: relocalize callers that may wait for the shared outcome at once (the node gives its
-#: executor this many threads more than it needs otherwise); more are told it is scheduled
+#: the admission limit: relocalize callers (all request paths together) that may wait for the
+#: shared outcome at once (the node gives its executor this many threads more than it needs
+#: otherwise); a caller beyond it is answered at once, ``busy`` (docs/node.md "Request paths")
 MAX_WAITERS = 32
 #: LocalizerConfig fields that runtime tuning may change (read per query by the localizer)
 TUNABLE_LOCALIZER = ("top_p", "fusion", "use_submaps", "rerank", "n_submaps")
@@ -251,8 +252,10 @@ class QueryRuntime:
         with self._cond:
             self._stop = True
             tickets, self._tickets = list(self._tickets.values()), {}
+            if self._inflight is not None:  # its query is cut short and never published
+                tickets += list(self._inflight[2].values())
             self._cond.notify_all()
-        for ticket in tickets:
+        for ticket in tickets:  # every waiting caller is answered now (not_active)
             ticket.finish(None)
         if self._thread.is_alive():
             self._thread.join(timeout_s)

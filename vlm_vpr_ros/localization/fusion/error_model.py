@@ -31,6 +31,7 @@ import numpy as np
 
 from vlm_vpr_ros.errors import ConfigError
 from vlm_vpr_ros.geodesy import EARTH_RADIUS_KM, MAX_DISTANCE_KM
+from vlm_vpr_ros.priors.provider import MAX_PRIOR_SIGMA_KM, MIN_PRIOR_SIGMA_KM
 
 ERROR_MODEL_FORMAT = "vlm_vpr_ros.prior_error_model"
 ERROR_MODEL_VERSION = 1
@@ -63,9 +64,11 @@ class ErrorModel:
         vals = (*self.sigmas_km, *self.weights, self.uniform_weight)
         if not all(isinstance(v, (int, float)) and math.isfinite(v) for v in vals):
             raise ConfigError(f"error model {self.name!r}: non-finite parameter")
-        if any(s <= 0 or s > MAX_DISTANCE_KM for s in self.sigmas_km):
-            raise ConfigError(f"error model {self.name!r}: sigmas_km must be in (0, "
-                              f"{MAX_DISTANCE_KM:.0f}] km")
+        # the range of every prior's own sigma (priors.provider.prior_sigma_problem): a scale
+        # under 1 cm would overflow kappa = (R / sigma)^2
+        if any(not MIN_PRIOR_SIGMA_KM <= s <= MAX_PRIOR_SIGMA_KM for s in self.sigmas_km):
+            raise ConfigError(f"error model {self.name!r}: sigmas_km must be in "
+                              f"[{MIN_PRIOR_SIGMA_KM:g}, {MAX_PRIOR_SIGMA_KM:.0f}] km")
         if any(w < 0 for w in self.weights) or self.uniform_weight < 0:
             raise ConfigError(f"error model {self.name!r}: negative weight")
         total = sum(self.weights) + self.uniform_weight

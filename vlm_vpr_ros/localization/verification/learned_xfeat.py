@@ -28,6 +28,7 @@ from vlm_vpr_ros.localization.verification.components import (Component, LocalFe
 class XFeatConfig:
     max_side: int = 640
     device: str = "cpu"
+    threads: int = 1  # torch threads of the XFeat pass (local_xfeat.torch_threads)
 
 
 class XFeatFeature(LocalFeatureExtractor):
@@ -42,7 +43,8 @@ class XFeatFeature(LocalFeatureExtractor):
 
         self.cfg = from_mapping(XFeatConfig, config, "xfeat")
         super().__init__({"max_side": self.cfg.max_side})
-        self.extractor = XFeatExtractor(max_side=self.cfg.max_side, device=self.cfg.device)
+        self.extractor = XFeatExtractor(max_side=self.cfg.max_side, device=self.cfg.device,
+                                        threads=self.cfg.threads)
         self.weights_sha256 = str(self.extractor.identity()["weights_sha256"])
 
     def identity(self) -> dict[str, Any]:

@@ -59,6 +59,14 @@ INTEGRITY_RISK = 1e-3
 #: a verified candidate supports the answer (the scene is visible from there) when it holds at
 #: least this share of the winner's inliers, above the noise level
 SUPPORT_SHARE = 0.25
+#: the matcher's noise level is measured on this many random pairs of references at least
+#: NOISE_MIN_DISTANCE_M apart (unrelated views), as the NOISE_QUANTILE of their inliers
+NOISE_PAIRS = 300
+NOISE_MIN_DISTANCE_M = 250.0
+NOISE_QUANTILE = 0.99
+#: the competitor floor is never below this: MAGSAC fits 8-12 "inliers" among pure noise
+#: (tests/test_verification.py), the floor the SIFT calibration was built on
+MIN_COMPETITOR_FLOOR = 12
 
 
 @dataclass
@@ -150,6 +158,44 @@ def sample_queries(coords: np.ndarray, max_queries: int, place_radius_m: float,
 LooRecord = tuple[str, int, list[int], np.ndarray]
 #: (search result [(squared distance, row)], local features) of a degraded query, per condition
 Degraded = Callable[[int], Mapping[str, tuple[list[tuple[float, int]], LocalFeatures]]]
+
+
+def noise_pairs(coords: np.ndarray, n: int, min_distance_m: float,
+                rng: np.random.Generator,
+                copies_of: Callable[[int], Collection[int]] | None = None
+                ) -> list[tuple[int, int]]:
+    """Up to ``n`` distinct random pairs of rows at least ``min_distance_m`` apart (unrelated
+    views: their inliers are the matcher's noise); fewer on a map without such pairs.
+    ``copies_of(row)``: rows holding the same photograph (a look-alike copy far away is no
+    unrelated view: it matches with every keypoint), never paired."""
+    m = len(coords)
+    if m < 2:
+        return []
+    seen: set[tuple[int, int]] = set()
+    out: list[tuple[int, int]] = []
+    for _ in range(20 * n):
+        i, j = (int(v) for v in rng.choice(m, size=2, replace=False))
+        key = (min(i, j), max(i, j))
+        if key in seen or (copies_of is not None and j in copies_of(i)):
+            continue
+        seen.add(key)
+        d = float(haversine_km(coords[i, 0], coords[i, 1], coords[j, 0], coords[j, 1])) * 1e3
+        if d >= min_distance_m:
+            out.append((i, j))
+            if len(out) == n:
+                break
+    return out
+
+
+def noise_level(counts: Sequence[int], minimum: int = MIN_COMPETITOR_FLOOR) -> dict[str, Any]:
+    """The matcher's noise level from the inliers of unrelated pairs: the competitor floor is
+    their NOISE_QUANTILE (at least ``minimum``; ``minimum`` alone without pairs)."""
+    c = np.asarray(counts, np.int64)
+    if not len(c):
+        return {"pairs": 0, "median": None, "p99": None, "max": None, "floor": int(minimum)}
+    q = int(np.quantile(c, NOISE_QUANTILE, method="higher"))
+    return {"pairs": int(len(c)), "median": float(np.median(c)), "p99": q, "max": int(c.max()),
+            "floor": max(int(minimum), q)}
 
 
 def loo_records(coords: np.ndarray, search: Callable[[int, int], list[tuple[float, int]]],
@@ -357,6 +403,9 @@ def validate(doc: Any, where: str) -> dict[str, Any]:
     if user is not None and (not isinstance(user, dict)
                              or not isinstance(user.get("null_scores"), list)):
         raise MapError(f"{where}: user section malformed")
+    floor = doc.get("competitor_floor", 12)
+    if not isinstance(floor, int) or isinstance(floor, bool) or floor < 0:
+        raise MapError(f"{where}: competitor_floor must be an integer >= 0")
     for key in ("place_radius_m", "top_k"):
         v = doc.get(key)
         if not isinstance(v, (int, float)) or isinstance(v, bool) or not v > 0:

@@ -22,7 +22,7 @@ in only when
 1. the winner lies within ``CONSISTENT_SIGMAS`` (3) sigma of the prior: the answer is
    consistent with the prior's own region, and
 2. geometry alone already prefers the winner: its inliers are above the noise level
-   (``competitor_floor``, 12: MAGSAC finds 8-13 among random matches) and ``pu >= 0.5`` (no
+   (the map's ``competitor_floor``: its matcher's noise level, at least 12) and ``pu >= 0.5`` (no
    far candidate holds as much evidence).
 
 A prior 2 km off claiming 100 m either has no consistent winner (the true place is 20 sigma
@@ -62,21 +62,23 @@ def applies(hyp: Hypothesis, policy: Any) -> bool:
             and hyp.inliers >= 0)
 
 
-def weigh_trusted_prior(hyp: Hypothesis, model: Any = None, level: float = 0.95) -> None:
+def weigh_trusted_prior(hyp: Hypothesis, model: Any = None, level: float = 0.95,
+                        evidence: EvidenceConfig = _EVIDENCE) -> None:
     """Set ``hyp.p_correct`` from pu and the prior (module docstring), or to pu with the flag
     ``prior_inconsistent`` when the guard refuses the prior; with the verifier's calibration
-    ``model``, narrow the radii for the new ``p_correct`` (never widen them)."""
+    ``model``, narrow the radii for the new ``p_correct`` (never widen them). ``evidence``: the
+    map's (its matcher's noise level and place radius)."""
     prior, pu = hyp.prior, hyp.p_correct_without_prior
     assert prior is not None and prior.sigma_km is not None
     d_win = float(haversine_km(prior.lat, prior.lon, hyp.lat, hyp.lon))
     consistent = d_win <= CONSISTENT_SIGMAS * prior.sigma_km
-    supported = hyp.inliers > _EVIDENCE.competitor_floor and pu >= MIN_P_WITHOUT_PRIOR
+    supported = hyp.inliers > evidence.competitor_floor and pu >= MIN_P_WITHOUT_PRIOR
     if not (consistent and supported):
         hyp.p_correct = pu
         if "prior_inconsistent" not in hyp.flags:
             hyp.flags = tuple(hyp.flags) + ("prior_inconsistent",)
         return
-    radius_km = _EVIDENCE.place_radius_m / 1000.0
+    radius_km = evidence.place_radius_m / 1000.0
     far = [c for c in hyp.candidates
            if c.inliers is not None and c.inliers >= 0
            and float(haversine_km(hyp.lat, hyp.lon, c.lat, c.lon)) > radius_km]

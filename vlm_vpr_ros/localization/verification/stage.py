@@ -209,6 +209,14 @@ class Verifier:
                 and cfg.get("edge_threshold") == 10.0
                 and self.preset.query_max_keypoints <= vc.n_features)
 
+    def reuses_xfeat_of(self, descriptor: Any) -> bool:
+        """Whether the query features are the XFeat pass of this ``vlad_xfeat`` descriptor
+        (the same extractor identity: weights and frame size)."""
+        if not self.enabled or self.preset.feature != "xfeat" or \
+                not hasattr(descriptor, "describe_with_xfeat"):
+            return False
+        return descriptor.xfeat.identity() == self.extractor.identity()
+
     # -- features ----------------------------------------------------------------------------
     def query_features(self, image: np.ndarray) -> LocalFeatures:
         return self.extractor.extract(image, self.preset.query_max_keypoints)
