@@ -95,6 +95,10 @@ def test_every_learned_preset_is_registered_with_its_components():
         create_matcher("lightglue", {"features": "xfeat"})
     with pytest.raises(ConfigError, match="lighterglue features 'disk': choices: xfeat"):
         create_matcher("lighterglue", {"features": "disk"})
+    with pytest.raises(ConfigError, match="lightglue threads must be an integer in 0..64"):
+        create_matcher("lightglue", {"threads": -1})
+    with pytest.raises(ConfigError, match="valid options"):
+        create_feature("aliked", {"weight": "x.pth"})
 
 
 def test_shipped_weights_load_exactly_and_with_weights_only(models, monkeypatch):
