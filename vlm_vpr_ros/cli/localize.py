@@ -13,6 +13,7 @@ import argparse
 import logging
 import os
 from pathlib import Path
+from typing import Sequence
 
 from vlm_vpr_ros.cli.common import (descriptor_options, localizer_config, make_prior_provider,
                                     prior_inputs, status_policy, verification_config)
@@ -33,7 +34,7 @@ def localize_inputs(args: argparse.Namespace) -> list[str]:
 
 
 def localize_start(out: Path, resume: bool, overwrite: bool,
-                   inputs: list[str] = ()) -> list[dict]:
+                   inputs: Sequence[str] = ()) -> list[dict]:
     """Check ``--out`` (and its ``.partial`` file) and return the rows kept from an earlier run
     (``--resume``). Never one of ``inputs`` (a results CSV given as the queries is still an
     input), never a file that is not a results CSV of ours."""
@@ -42,8 +43,8 @@ def localize_start(out: Path, resume: bool, overwrite: bool,
     partial = out.with_name(out.name + ".partial")
     check_file_output(out, "--out", inputs, is_results_csv,
                       "a results CSV of 'vlm-vpr localize'")
-    check_file_output(partial, "--out's unfinished file", inputs,
-                      lambda p: p.is_file() and (p.stat().st_size == 0 or is_results_csv(p)),
+    # the unfinished rows of an earlier run (our own name): never an input, else as before
+    check_file_output(partial, "--out's unfinished file", inputs, Path.is_file,
                       "a results CSV of 'vlm-vpr localize'")
     if resume:
         source = partial if partial.is_file() else out if out.is_file() else None
@@ -67,6 +68,7 @@ def cmd_localize(args: argparse.Namespace) -> int:
     if args.query_descriptors and args.resume:  # one pass, written whole at the end
         raise DataError("--resume is for --images runs (streamed rows); a --query-descriptors "
                         "run writes its results at the end: run it again with --overwrite")
+    files = read_file_column(args.queries)
     if not args.images and not args.query_descriptors:
         raise DataError("localize needs --images DIR (or --query-descriptors Q.npy)")
     if args.only_wrong and not args.save_matches:
@@ -75,7 +77,6 @@ def cmd_localize(args: argparse.Namespace) -> int:
         raise ConfigError("--only-wrong needs --ground-truth (which answers are wrong)")
     out = Path(args.out)
     inputs = localize_inputs(args)
-    files = read_file_column(args.queries)
     done = localize_start(out, args.resume, args.overwrite, inputs)
     finished = {r["file"] for r in done}
     todo = [f for f in files if f not in finished]
