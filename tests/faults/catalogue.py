@@ -414,4 +414,25 @@ CATALOGUE: dict[str, tuple[str, str, str]] = {
                               "and `summary.json`"),
     "help_double_percent": ("cli", "`calibrate --help` (every command's help)",
                             "'68 % / 95 %', no `%%` in any help"),
+    # -- round 5 (issue 43): found elsewhere -------------------------------------------------
+    "localizer_prior_sigma_guard": ("prior", "a prior provider of the user's (past every entry "
+                                             "point) answering sigma 1e-300 km or 30,000 km",
+                                    "flagged `prior_invalid` and `prior_failed`, the answer "
+                                    "of no prior; never an error row"),
+    "localize_checks_before_map": ("cli", "`localize` with a bad priors CSV, `--prior-option` "
+                                          "or status option, `--only-wrong` alone",
+                                   "exit 2 before the map is opened, no results file"),
+    "out_localize_over_inputs": ("output", "`localize --out` the queries CSV (a results CSV of "
+                                           "ours), the priors CSV (also by a hard link) or "
+                                           "the ground truth, with `--overwrite` / `--resume`",
+                                 "exit 2 before any work, every file untouched"),
+    "out_save_matches_inputs": ("output", "`localize --save-matches` the images folder holding "
+                                          "a same-named file, a folder inside it, a user's "
+                                          "folder, with `--overwrite`",
+                                "exit 2 before any work, untouched; a folder of match "
+                                "pictures replaced"),
+    "out_folders_hold_inputs": ("output", "`evaluate --integrity-out`, `ablate --out`, "
+                                          "`build-map --out` a folder holding the results "
+                                          "CSV, the priors CSV or the descriptors",
+                                "exit 2 before any work, untouched"),
 }

@@ -280,3 +280,34 @@ def test_a_robot_estimate_grown_past_every_sigma_is_refused(caplog, demo_map, de
     hyp = LocalizationPipeline.open(demo_map).localize_image(
         load_image(demo_data / "images" / name), res)
     assert hyp.prior is not None and "prior_failed" not in hyp.flags
+
+
+# -- round 5 (issue 43): found elsewhere ----------------------------------------------------------
+@pytest.mark.fault("localizer_prior_sigma_guard")
+def test_a_providers_sigma_outside_the_rule_is_an_invalid_prior(pipeline, demo_data):
+    """A provider of the user's answers past every entry point's check: before, 1e-300 km was an
+    OverflowError row and 30,000 km an 'error model' row on every query. Now the localizer's
+    own guard (the one sigma rule) flags it and answers as without a prior."""
+    from vlm_vpr_ros.localization.batch import localize_files
+    from vlm_vpr_ros.priors import create_prior_provider
+    from vlm_vpr_ros.priors.provider import Prior, PriorProvider, PriorResult
+
+    class Mine(PriorProvider):
+        name = "mine"
+
+        def __init__(self, sigma_km: float) -> None:
+            self.sigma_km = sigma_km
+
+        def _compute(self, query):
+            return PriorResult(Prior(39.2, 9.1, "mine", self.sigma_km), "mine")
+
+    files = sorted(p.name for p in (demo_data / "images").iterdir())[:2]
+    ref = list(localize_files(pipeline, create_prior_provider("none"), demo_data / "images",
+                              files))
+    for sigma_km in (1e-300, 3e4):
+        rows = list(localize_files(pipeline, Mine(sigma_km), demo_data / "images", files))
+        for r, r0 in zip(rows, ref):
+            flags = r["flags"].split("|")
+            assert {"prior_failed", "prior_invalid", "no_prior"} <= set(flags), r
+            assert "error" not in flags and r["ref_id"] == r0["ref_id"] != ""
+            assert (r["lat"], r["lon"]) == (r0["lat"], r0["lon"])

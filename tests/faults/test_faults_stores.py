@@ -316,3 +316,115 @@ def test_ablate_out_never_over_inputs(cli, map_copy, demo_data, tmp_path):
         exit2(cli("ablate", "--map", map_copy, "--images", demo_data / "images", "--queries",
                   q, "--out", out, "--top-p", "1"), needle)
         assert sha_tree(map_copy, mine) == before
+
+
+# -- round 5 (issue 43): found elsewhere ----------------------------------------------------------
+@pytest.fixture
+def map_loads(monkeypatch):
+    """The maps a command opened (ReferenceMap.load), in order."""
+    from vlm_vpr_ros.maps.reference_map import ReferenceMap
+
+    calls: list[str] = []
+    load = ReferenceMap.load.__func__
+    monkeypatch.setattr(ReferenceMap, "load", classmethod(
+        lambda cls, path, *a, **k: (calls.append(str(path)), load(cls, path, *a, **k))[1]))
+    return calls
+
+
+@pytest.mark.fault("localize_checks_before_map")
+def test_localize_checks_everything_before_the_map(cli, demo_map, demo_data, queries, tmp_path,
+                                                   map_loads):
+    """Before: the map (and the descriptor model) loaded first, then exit 2 on the prior."""
+    name = queries.read_text().split()[1]
+    bad = tmp_path / "p.csv"
+    bad.write_text(f"file,lat,lon,sigma_m\n{name},37.7,-122.4,3e7\n")
+    out = tmp_path / "r.csv"
+    base = ["localize", "--map", demo_map, "--images", demo_data / "images", "--queries",
+            queries, "--out", out]
+    for extra, needle in ((("--priors", bad), "sigma_m"),
+                          (("--prior", "fixed", "--prior-option", "lat=1", "--prior-option",
+                            "lon=2", "--prior-option", "sigma_km=1e-300"), "sigma_km"),
+                          (("--fix-min-p-correct", "0"), "fix_min_p_correct"),
+                          (("--only-wrong",), "--only-wrong")):
+        exit2(cli(*base, *extra), needle)
+        assert not map_loads and not out.exists()
+
+
+@pytest.mark.fault("out_localize_over_inputs")
+def test_localize_out_never_an_input(cli, demo_map, demo_data, queries, tmp_path, map_loads):
+    """Before: `--queries r.csv --out r.csv --overwrite` replaced the queries (a results CSV of
+    ours) with the results; the priors CSV and the ground truth alike."""
+    r = tmp_path / "r.csv"
+    base = ["localize", "--map", demo_map, "--images", demo_data / "images"]
+    assert cli(*base, "--queries", queries, "--out", r)[0] == 0
+    map_loads.clear()
+    pri = tmp_path / "pri.csv"
+    os.link(r, pri)
+    before = sha_tree(tmp_path)
+    for mode in ("--overwrite", "--resume"):
+        exit2(cli(*base, "--queries", r, "--out", r, mode), "is the input")
+        exit2(cli(*base, "--queries", queries, "--priors", r, "--out", pri, mode),
+              "is the input")
+        exit2(cli(*base, "--queries", queries, "--out", r, "--save-matches", tmp_path / "m",
+                  "--ground-truth", r, mode), "is the input")
+        assert sha_tree(tmp_path) == before and not map_loads
+
+
+@pytest.mark.fault("out_save_matches_inputs")
+def test_save_matches_never_over_inputs_or_a_users_files(cli, demo_map, demo_data, queries,
+                                                         tmp_path, map_loads):
+    """Before: `--save-matches IMAGES --overwrite` replaced a user's file of a picture's name
+    inside the query images."""
+    import shutil
+
+    from vlm_vpr_ros.evaluation.matches import sheet_names
+
+    files = queries.read_text().split()[1:]
+    name = sheet_names(files)[files[0]]
+    imgs, mine = tmp_path / "imgs", tmp_path / "mine"
+    shutil.copytree(demo_data / "images", imgs)
+    mine.mkdir()
+    for d in (imgs, mine):
+        (d / name).write_bytes(b"a picture of mine")
+    (mine / "notes.txt").write_text("notes\n")
+    base = ["localize", "--map", demo_map, "--images", imgs, "--queries", queries, "--out",
+            tmp_path / "r.csv", "--overwrite", "--save-matches"]
+    before = sha_tree(tmp_path)
+    exit2(cli(*base, imgs), "is the input")
+    exit2(cli(*base, imgs / "m"), "is inside the input")
+    exit2(cli(*base, mine), "not match pictures")
+    assert sha_tree(tmp_path) == before and not map_loads
+    ours = tmp_path / "ours"
+    assert cli(*base, ours)[0] == 0
+    drawn = sha_tree(ours)
+    (ours / name).write_bytes(b"stale")
+    assert cli(*base, ours)[0] == 0 and sha_tree(ours) == drawn  # ours: replaced
+
+
+@pytest.mark.fault("out_folders_hold_inputs")
+def test_output_folders_never_hold_an_input(cli, map_copy, demo_data, tmp_path):
+    """An output folder is swapped for the new one: a folder holding an input would lose it."""
+    res = tmp_path / "r.csv"
+    res.write_text(_RESULTS)
+    gt = tmp_path / "gt.csv"
+    gt.write_text("file,lat,lon\na.jpg,48.8606,2.3376\n")
+    before = sha_tree(tmp_path)
+    exit2(cli("evaluate", "--results", res, "--ground-truth", gt, "--integrity-out", tmp_path,
+              "--overwrite"), "--integrity-out", "contains the input")
+    assert sha_tree(tmp_path) == before
+    q = tmp_path / "q.csv"
+    q.write_text("file,lat,lon\n" + "".join(
+        ",".join(r) + "\n" for r in list(csv.reader(open(demo_data / "coords.csv")))[1:4]))
+    abl = tmp_path / "abl"
+    abl.mkdir()
+    (abl / "pri.csv").write_text("file,lat,lon\n")
+    before = sha_tree(tmp_path)
+    exit2(cli("ablate", "--map", map_copy, "--images", demo_data / "images", "--queries", q,
+              "--priors", abl / "pri.csv", "--out", abl, "--top-p", "1"), "contains the input")
+    assert sha_tree(tmp_path) == before
+    npy = map_copy / "d.npy"  # descriptors kept inside an earlier map of ours
+    np.save(npy, np.zeros((3, 8), np.float32))
+    before = sha_tree(map_copy)
+    exit2(cli("build-map", "--descriptors", npy, "--coords", q, "--out", map_copy,
+              "--overwrite"), "contains the input")
+    assert sha_tree(map_copy) == before

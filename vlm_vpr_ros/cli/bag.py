@@ -10,7 +10,7 @@ from pathlib import Path
 
 from vlm_vpr_ros.cli.common import (add_descriptor_option_args, add_localizer_args,
                                     add_prior_args, descriptor_options, localizer_config,
-                                    make_prior_provider)
+                                    make_prior_provider, prior_inputs)
 from vlm_vpr_ros.cli.evaluate import add_integrity_args
 
 log = logging.getLogger(__name__)
@@ -229,7 +229,8 @@ def cmd_evaluate_bag(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else Path(str(Path(args.bag)).rstrip("/") + "_eval")
     from vlm_vpr_ros.files.outputs import check_not_inside, check_target
 
-    check_not_inside(out, [bag.path, args.map])  # fail before loading the map
+    # fail before loading the map; never holding an input (a swap would drop it)
+    check_not_inside(out, [bag.path, args.map, *prior_inputs(args)])
     check_target(out, "evaluation", args.overwrite)
     pipe = LocalizationPipeline.open(args.map, localizer=localizer_config(args),
                                      descriptor_config=descriptor_options(args))
@@ -276,7 +277,8 @@ def cmd_ablate(args: argparse.Namespace) -> int:
             from None
     choose(args.metric, {f"{t:g}km": 1 for t in (1, 25, 200, 750, 2500)}, "metric")
     out = Path(args.out)
-    _check_ablation_out(out, [args.map, args.bag], [args.images, args.queries])
+    _check_ablation_out(out, [args.map, args.bag],
+                        [args.images, args.queries, *prior_inputs(args)])
     pipe = LocalizationPipeline.open(args.map, descriptor_config=descriptor_options(args))
     pipe.map.open_submaps()
     provider = make_prior_provider(args)

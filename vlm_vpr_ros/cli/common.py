@@ -36,6 +36,13 @@ def make_prior_provider(args: argparse.Namespace) -> PriorProvider:
     return create_prior_provider(name or "none", options)
 
 
+def prior_inputs(args: argparse.Namespace) -> list[str]:
+    """The files a prior provider reads (``--priors``, ``--prior-option path=``): inputs that
+    no output of the command may be, replace or hold."""
+    path = parse_kv(args.prior_option).get("path")
+    return [str(p) for p in (args.priors, path) if p and isinstance(p, str)]
+
+
 def add_localizer_args(parser: argparse.ArgumentParser) -> None:
     g = parser.add_argument_group("localizer")
     g.add_argument("--top-p", type=int, default=50, metavar="N",

@@ -1,20 +1,20 @@
-"""Core sub-commands: build-map, localize, evaluate, descriptors, demo."""
+"""Core sub-commands: build-map, localize (:mod:`.localize`), evaluate (:mod:`.evaluate`),
+descriptors, demo."""
 
 from __future__ import annotations
 
 import argparse
 import logging
-import os
-from pathlib import Path
 
 from vlm_vpr_ros.cli.common import (add_descriptor_option_args, add_localizer_args,
                                     add_local_feature_args, add_prior_args,
                                     add_verification_args, descriptor_options,
-                                    local_feature_options, localizer_config,
-                                    make_prior_provider, status_policy, verification_config)
+                                    local_feature_options)
 from vlm_vpr_ros.cli.distributed import add_engine_args, cmd_build_map_ray, engine_options
 from vlm_vpr_ros.cli.evaluate import add_integrity_args, cmd_evaluate
-from vlm_vpr_ros.errors import ConfigError, DataError, MapError
+from vlm_vpr_ros.cli.localize import cmd_localize
+from vlm_vpr_ros.errors import ConfigError
+from vlm_vpr_ros.files.outputs import check_not_inside
 
 log = logging.getLogger(__name__)
 
@@ -177,6 +177,9 @@ def cmd_build_map(args: argparse.Namespace) -> int:
     from vlm_vpr_ros.mapping.build_images import build_map
 
     check_source_args(args)
+    # the map is built beside --out and swapped in: never over or holding an input
+    check_not_inside(args.out, [args.images, args.coords, args.bag,
+                                getattr(args, "descriptors", None)], allow_out_inside=True)
     local = local_feature_options(args)
     if args.bag:
         from vlm_vpr_ros.bags.teach import build_map_from_bag
@@ -236,159 +239,6 @@ def _conditions(args: argparse.Namespace):
 
     v = getattr(args, "calibration_conditions", None)
     return None if v is None else [c.name for c in parse_conditions(v)]
-
-
-def _localize_start(out: Path, resume: bool, overwrite: bool) -> list[dict]:
-    """Check ``--out`` and return the rows kept from an earlier run (``--resume``)."""
-    from vlm_vpr_ros.localization.batch import is_results_csv, read_done_rows
-    from vlm_vpr_ros.errors import OutputError
-
-    partial = out.with_name(out.name + ".partial")
-    if out.is_dir():
-        raise OutputError(f"--out {out} is a folder; give a results CSV file name")
-    if out.exists() and not is_results_csv(out):
-        raise OutputError(f"{out} exists and is not a results CSV of 'vlm-vpr localize'; it is "
-                          "left untouched: choose another --out")
-    if resume:
-        source = partial if partial.is_file() else out if out.is_file() else None
-        rows = read_done_rows(source) if source is not None else []
-        if source is not None:
-            log.info("resuming from %s: %d finished rows kept", source, len(rows))
-        return rows
-    if out.exists() and not overwrite:
-        raise OutputError(f"{out} already exists; pass --resume to continue it or --overwrite "
-                          "to replace it (the old file stays until the new one is complete)")
-    if partial.is_file() and not overwrite:
-        raise OutputError(f"an interrupted run left {partial}; pass --resume to continue it or "
-                          "--overwrite to start over")
-    return []
-
-
-def cmd_localize(args: argparse.Namespace) -> int:
-    from vlm_vpr_ros.files.csvio import read_file_column
-
-    out = Path(args.out)
-    if args.query_descriptors and args.resume:  # one pass, written whole at the end
-        raise DataError("--resume is for --images runs (streamed rows); a --query-descriptors "
-                        "run writes its results at the end: run it again with --overwrite")
-    files = read_file_column(args.queries)
-    done = _localize_start(out, args.resume, args.overwrite)
-    finished = {r["file"] for r in done}
-    _check_save_matches(args, [f for f in files if f not in finished])
-    if args.query_descriptors:
-        return _localize_descriptors(args, files)
-    if not args.images:
-        raise DataError("localize needs --images DIR (or --query-descriptors Q.npy)")
-    from vlm_vpr_ros.localization.batch import ResultsStream, localize_files
-    from vlm_vpr_ros.localization.pipeline import LocalizationPipeline
-
-    pipe = LocalizationPipeline.open(args.map, descriptor=args.descriptor,
-                                     localizer=localizer_config(args),
-                                     descriptor_config=descriptor_options(args),
-                                     verification=verification_config(args),
-                                     status=status_policy(args))
-    pipe.map.open_submaps()  # a damaged map: exit 2 before the first query
-    on_result = _match_writer(args, pipe)
-    todo = [f for f in files if f not in finished]
-    provider = make_prior_provider(args)
-    from tqdm import tqdm
-
-    stream = ResultsStream(out, [r for r in done if r["file"] in set(files)])
-    try:
-        for row in tqdm(localize_files(pipe, provider, args.images, todo, args.prior_timeout,
-                                       on_result=on_result),
-                        total=len(todo), desc="localize", unit="img", disable=None):
-            stream.write(row)
-    except OSError as exc:  # disk full / permissions while streaming
-        from vlm_vpr_ros.errors import OutputError
-        from vlm_vpr_ros.files.atomic import describe_os_error
-
-        raise OutputError(f"{describe_os_error(exc, stream.partial)}; {len(stream.rows)} "
-                          f"rows kept there: continue with --resume") from None
-    except KeyboardInterrupt:
-        stream.close()
-        log.warning("%d of %d rows kept in %s; run the same command with --resume to continue",
-                    len(stream.rows), len(files), stream.partial)
-        raise
-    finally:
-        stream.close()
-        provider.close()
-    stream.finish(files)
-    flagged = sum(1 for r in stream.rows if r.get("flags"))
-    resumed = f", {len(stream.rows) - len(todo)} kept from the earlier run" if done else ""
-    print(f"{len(stream.rows)} queries localized -> {args.out} ({flagged} with flags{resumed})")
-    return 0
-
-
-def _check_save_matches(args: argparse.Namespace, todo: list[str]) -> None:
-    """``--save-matches DIR`` checked before any work: a folder (or a new name), not inside the
-    map, and holding none of the pictures this run would write unless ``--overwrite``."""
-    if not args.save_matches:
-        return
-    from vlm_vpr_ros.errors import OutputError
-    from vlm_vpr_ros.evaluation.matches import sheet_names
-    from vlm_vpr_ros.files.outputs import check_not_inside
-
-    d = Path(args.save_matches)
-    if (d.exists() or d.is_symlink()) and not d.is_dir():
-        raise OutputError(f"--save-matches {d} exists and is not a folder; it is left "
-                          "untouched: choose a folder")
-    check_not_inside(d, [args.map], what="--save-matches")
-    if d.is_dir() and not args.overwrite:
-        clash = [n for n in sheet_names(todo).values() if os.path.lexists(d / n)]
-        if clash:
-            raise OutputError(f"--save-matches {d} already holds {len(clash)} of the pictures "
-                              f"this run writes (e.g. {clash[0]}); pass --overwrite to replace "
-                              "them or choose another folder")
-
-
-def _match_writer(args: argparse.Namespace, pipe):
-    """The ``--save-matches`` callback (None without it)."""
-    if not args.save_matches:
-        if args.only_wrong:
-            raise ConfigError("--only-wrong goes with --save-matches DIR")
-        return None
-    from vlm_vpr_ros.evaluation.matches import MatchWriter
-    from vlm_vpr_ros.evaluation.metrics import read_ground_truth
-
-    gt = read_ground_truth(args.ground_truth) if args.ground_truth else None
-    return MatchWriter(args.save_matches, pipe, gt, args.only_wrong)
-
-
-def _localize_descriptors(args: argparse.Namespace, files: list[str]) -> int:
-    from tqdm import tqdm
-
-    from vlm_vpr_ros.localization.batch import RESULT_FIELDS
-    from vlm_vpr_ros.files.csvio import write_csv_atomic
-    from vlm_vpr_ros.localization.localizer import Localizer
-    from vlm_vpr_ros.maps.reference_map import ReferenceMap
-    from vlm_vpr_ros.localization.query_descriptors import (localize_descriptors,
-                                                            open_query_descriptors)
-
-    ref_map = ReferenceMap.load(args.map).open_submaps()
-    if args.descriptor and args.descriptor != ref_map.descriptor_identity["name"]:
-        raise MapError(f"the map at {args.map} was built with descriptor "
-                       f"{ref_map.descriptor_identity['name']!r}, but {args.descriptor!r} was "
-                       "requested")
-    descs = open_query_descriptors(args.query_descriptors, len(files), ref_map.dim)
-    localizer = Localizer(ref_map, localizer_config(args))
-    from vlm_vpr_ros.localization.verification.stage import Verifier
-
-    verifier = Verifier(ref_map, verification_config(args)) if args.images else None
-    provider = make_prior_provider(args)
-    try:
-        rows = list(tqdm(localize_descriptors(localizer, provider, files, descs, args.images,
-                                              args.prior_timeout, verifier=verifier,
-                                              policy=status_policy(args)),
-                         total=len(files), desc="localize", unit="query", disable=None))
-    finally:
-        provider.close()
-    write_csv_atomic(args.out, RESULT_FIELDS, rows)
-    # an interrupted --images run's rows (--overwrite was given): superseded now
-    Path(args.out).with_name(Path(args.out).name + ".partial").unlink(missing_ok=True)
-    flagged = sum(1 for r in rows if r.get("flags"))
-    print(f"{len(rows)} queries localized -> {args.out} ({flagged} with flags)")
-    return 0
 
 
 def cmd_descriptors(args: argparse.Namespace) -> int:

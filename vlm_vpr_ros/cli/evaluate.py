@@ -13,12 +13,15 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from vlm_vpr_ros.evaluation.metrics import format_table
     from vlm_vpr_ros.evaluation.results_csv import JUNK, evaluate_results_csv
     from vlm_vpr_ros.files.geojson import is_results_geojson
-    from vlm_vpr_ros.files.outputs import check_file_output
+    from vlm_vpr_ros.files.outputs import check_file_output, check_not_inside
 
     alert_m = integrity.check_alert_limit(args.alert_limit_m)
     if args.geojson:  # before any work: never over an input or a file of the user's
         check_file_output(args.geojson, "--geojson", [args.results, args.ground_truth],
                           is_results_geojson, "a GeoJSON")
+    integrity_out = args.integrity_out or integrity.default_out_dir(args.results)
+    # an earlier report's folder is swapped for the new one: never one holding an input
+    check_not_inside(integrity_out, [args.results, args.ground_truth], "--integrity-out")
     summary, extra = evaluate_results_csv(args.results, args.ground_truth)
     if args.geojson:
         from vlm_vpr_ros.evaluation.metrics import read_ground_truth
@@ -29,7 +32,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         print(f"GeoJSON: {args.geojson} ({n} points)", file=sys.stderr)
     integ = integrity.evaluate_integrity(  # docs/evaluation.md "Integrity"
         args.results, args.ground_truth, alert_m,
-        args.integrity_out or integrity.default_out_dir(args.results), args.overwrite,
+        integrity_out, args.overwrite,
         **extra["integrity"])
     if args.json:
         print(json.dumps({**summary, "recall_pct": extra["recall_pct"], "fixes": extra["fixes"],

@@ -39,7 +39,7 @@ from vlm_vpr_ros.maps.search import unique_ints
 from vlm_vpr_ros.maps.mapped import IdView
 from vlm_vpr_ros.maps.submap import submap_radius_km
 from vlm_vpr_ros.maps.partition import country_codes, nearest_centroids
-from vlm_vpr_ros.priors.provider import Prior, PriorResult
+from vlm_vpr_ros.priors.provider import Prior, PriorResult, prior_sigma_problem
 from vlm_vpr_ros.types import Candidate, Hypothesis
 
 log = logging.getLogger(__name__)
@@ -300,9 +300,11 @@ class Localizer:
         cfg = self.config
         prior = prior_result.prior if prior_result is not None else None
         flags: list[str] = []
+        # the last guard of every entry point (priors CSV, options, topic, a provider of the
+        # user's): a sigma outside the error model's range is refused here by the one sigma
+        # rule, never handed to the model (an error on every query)
         if prior is not None and not (valid_latlon(prior.lat, prior.lon) and (
-                prior.sigma_km is None or (math.isfinite(prior.sigma_km)
-                                           and prior.sigma_km > 0))):
+                prior.sigma_km is None or not prior_sigma_problem(prior.sigma_km))):
             flags += ["prior_failed", "prior_invalid"]
             log.warning("ignoring an invalid prior (%s, %s, sigma %s km) from %s", prior.lat,
                         prior.lon, prior.sigma_km, prior.source)
