@@ -186,10 +186,12 @@ def test_verified_radius_only_narrows_at_the_fix_level():
 def test_registry_presets_and_unknown_names():
     assert {"sift", "disk"} <= set(available_features())
     assert {"nn", "lightglue"} <= set(available_matchers())
-    with pytest.raises(ConfigError, match="unknown local feature 'orb'; choices: disk, sift"):
+    with pytest.raises(ConfigError, match="unknown local feature 'orb'; choices: aliked, disk, "
+                                          "sift, xfeat"):
         create_feature("orb")
     with pytest.raises(ConfigError, match="unknown verification preset 'x'; choices: "
-                                          "disk_lightglue, sift"):
+                                          "aliked_lightglue, disk_lightglue, sift, "
+                                          "xfeat_lighterglue, xfeat_mnn"):
         get_preset("x")
     with pytest.raises(ConfigError, match="valid options"):
         create_feature("sift", {"max_sid": 100})

@@ -92,6 +92,9 @@ def add_verification_args(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--reference-images", metavar="DIR", default="",
                    help="reference images, for maps that store no local features (maps built "
                         "from descriptors): verified from these images")
+    g.add_argument("--verify-preset", metavar="PRESET", default="",
+                   help="the verification preset the answers must use (default: the map's "
+                        "own); another than the map's is refused, naming both")
     g.add_argument("--verification-required", action="store_true",
                    help="exit 2 when the map has no usable local features (default: warn, "
                         "answers unverified)")
@@ -118,7 +121,8 @@ def verification_config(args: argparse.Namespace) -> VerificationConfig:
     return VerificationConfig(args.verify_top_k, args.verification_required,
                               args.reference_images, threads=args.verify_threads,
                               feature_options=parse_kv(args.feature_option),
-                              matcher_options=parse_kv(args.matcher_option))
+                              matcher_options=parse_kv(args.matcher_option),
+                              preset=getattr(args, "verify_preset", ""))
 
 
 def status_policy(args: argparse.Namespace) -> StatusPolicy:

@@ -32,7 +32,7 @@ from vlm_vpr_ros.localization.verification.p_correct import (PCorrect, load_doc,
                                                              support_spread_m, verified_radius)
 from vlm_vpr_ros.localization.verification.evidence import EvidenceConfig, spread_radii, weigh
 from vlm_vpr_ros.localization.verification.geometry import GeometryConfig, fundamental_inliers
-from vlm_vpr_ros.localization.verification.presets import preset_for_map
+from vlm_vpr_ros.localization.verification.presets import check_map_preset, preset_for_map
 from vlm_vpr_ros.localization.verification.share import map_shared, resolve_threads
 from vlm_vpr_ros.maps.features import FeatureStore
 from vlm_vpr_ros.config import from_mapping
@@ -56,6 +56,9 @@ class VerificationConfig:
     #: device), e.g. {"weights": "/data/disk/depth-save.pth"}
     feature_options: Mapping[str, Any] = field(default_factory=dict)
     matcher_options: Mapping[str, Any] = field(default_factory=dict)
+    #: the preset the caller expects ("" = the map's own); another than the map's (features
+    #: and calibration) is a ConfigError naming both (presets.check_map_preset)
+    preset: str = ""
 
     def __post_init__(self) -> None:
         if not (0 <= self.top_k <= 1000 and self.cache_size >= 0):
@@ -127,7 +130,7 @@ class Verifier:
         try:
             self._build(fopts, mopts)
         except (MapError, ConfigError, DescriptorError) as exc:
-            if isinstance(exc, ConfigError) and (fopts or mopts):
+            if isinstance(exc, ConfigError) and (fopts or mopts or config.preset):
                 raise  # the user's options do not fit the map's features: say so, at once
             msg = f"{root}: local features unusable: {exc}"
             if config.required:
@@ -148,11 +151,14 @@ class Verifier:
                                f"{self.extractor.identity()} (differs in {', '.join(diff)})")
             built = self.store.feature.get("weights_sha256")
             now = self.extractor.identity().get("weights_sha256")
-            if built and now and built != now:
-                log.warning("%s: the map's %s features were extracted with another checkpoint "
-                            "(sha256 %s..., now %s...): matches may be weaker", self.map.path,
-                            p.feature, built[:12], now[:12])
+            if built and now and built != now:  # another descriptor space: no calibration
+                raise MapError(f"{self.map.path}: the map's {p.feature} features were "
+                               f"extracted with another checkpoint (sha256 {built[:12]}..., "
+                               f"now {now[:12]}...): rebuild the map or use its checkpoint")
         doc = load_doc(self.map)
+        check_map_preset(str(self.map.path), self.config.preset,
+                         self.store.preset if self.store is not None else "sift",
+                         (doc or {}).get("preset"))
         if doc is not None and doc.get("feature") not in (None, self.extractor.identity()) \
                 and _same_feature(doc["feature"], self.extractor.identity()):
             log.warning("%s: the verification calibration was made with other local "
