@@ -31,6 +31,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
+from vlm_vpr_ros.config import parse_kv  # noqa: E402
 from vlm_vpr_ros.files.images import load_image  # noqa: E402
 from vlm_vpr_ros.geodesy import haversine_km  # noqa: E402
 from vlm_vpr_ros.localization.pipeline import LocalizationPipeline  # noqa: E402
@@ -194,13 +195,15 @@ def _prior(name: str, lat: float, lon: float, rng) -> PriorResult | None:
 
 
 def run_queries(map_dir: Path, root: Path, records: dict,
-                conditions: tuple[str, ...] = QUERY_CONDITIONS) -> dict:
+                conditions: tuple[str, ...] = QUERY_CONDITIONS,
+                verification: dict | None = None) -> dict:
     """{(condition, prior): (rows, median ms)}; a row: (error m, status, protection m,
     p_correct, status reason, right place among the top 20)."""
     import random
 
-    plain = LocalizationPipeline.open(map_dir)
-    trusting = LocalizationPipeline.open(map_dir, status=StatusPolicy(trust_operator_prior=True))
+    plain = LocalizationPipeline.open(map_dir, verification=verification)
+    trusting = LocalizationPipeline.open(map_dir, verification=verification,
+                                         status=StatusPolicy(trust_operator_prior=True))
     queries = read_coords_csv(root / "queries.csv")
     out = {}
     for cname in conditions:
@@ -284,6 +287,10 @@ def main() -> int:
     ap.add_argument("--overhead-only", action="store_true",
                     help="only the added per-query work (microseconds)")
     ap.add_argument("--save", type=Path, help="write the per-query records here (JSON)")
+    ap.add_argument("--feature-option", action="append", default=[], metavar="KEY=VALUE",
+                    help="local feature setting of a learned preset, e.g. device=cuda")
+    ap.add_argument("--matcher-option", action="append", default=[], metavar="KEY=VALUE",
+                    help="matcher setting of a learned preset, e.g. device=cuda")
     ap.add_argument("--study", type=int, default=0, metavar="N",
                     help="first a leave-one-out study with N degraded queries per condition")
     args = ap.parse_args()
@@ -302,7 +309,9 @@ def main() -> int:
               f"= {t4 / t1:.2f}x (target <= 3x)")
     print(f"added per-query work (support spread + conditions check): {overhead():.0f} us")
     records: dict = {}
-    res = run_queries(args.map, args.data, records)
+    verification = {"feature_options": parse_kv(args.feature_option),
+                    "matcher_options": parse_kv(args.matcher_option)}
+    res = run_queries(args.map, args.data, records, verification=verification)
     ok = report(res)
     if args.save:
         args.save.write_text(json.dumps(records))
