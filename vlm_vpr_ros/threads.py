@@ -30,11 +30,12 @@ fp16 rows 4.6 ms against 0.35 ms).
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import sys
 import threading
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 
@@ -84,3 +85,33 @@ def scratch(name: str, shape: tuple[int, ...], dtype: Any = np.float32) -> np.nd
         buf = bufs[key] = np.empty(max(size, int(1.25 * (0 if buf is None else buf.size))),
                                    dtype)
     return buf[:size].reshape(shape)
+
+
+_TORCH_THREADS = threading.Lock()
+
+
+@contextlib.contextmanager
+def torch_threads(n: int) -> Iterator[None]:
+    """torch's intra-op threads at ``n`` for the block (0: unchanged), restored after: the
+    learned local features (XFeat, DISK, ALIKED, LightGlue) run one thread per call by default.
+
+    XFeat on one 640 px frame is 67 ms of CPU on one thread (AMD EPYC, 2 cores); with torch's
+    default of one thread per core it took 925 ms of CPU and 4.2 s of wall time on the same
+    2-core machine while other work ran: its OpenMP team spins for a core another thread
+    holds, as OpenBLAS's did (above). The setting is process-wide: blocks run one at a time.
+    torch is imported here only when a block asks for threads (the weight-free default never
+    imports it)."""
+    if n <= 0:
+        yield
+        return
+    import torch
+
+    with _TORCH_THREADS:
+        before = torch.get_num_threads()
+        if before != n:
+            torch.set_num_threads(n)
+        try:
+            yield
+        finally:
+            if before != n:
+                torch.set_num_threads(before)

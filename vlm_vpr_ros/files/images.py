@@ -160,3 +160,16 @@ def encode_jpeg(image: np.ndarray, quality: int = 90) -> bytes:
     if not ok:
         raise ImageDecodeError("JPEG encoding failed")
     return buf.tobytes()
+
+
+def fit_rgb(image: np.ndarray, max_side: int) -> tuple[np.ndarray, float]:
+    """An RGB image whose longer side is at most ``max_side`` (INTER_AREA; the image itself
+    when it fits) and the scale back to the original (original pixel = frame pixel * scale):
+    the frame the learned local features run on."""
+    rgb = check_rgb(image)
+    h, w = rgb.shape[:2]
+    s = max_side / max(h, w)
+    if s >= 1.0:
+        return rgb, 1.0
+    out = cv2.resize(rgb, (round(w * s), round(h * s)), interpolation=cv2.INTER_AREA)
+    return out, max(h, w) / max(out.shape[:2])

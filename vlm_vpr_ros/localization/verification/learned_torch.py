@@ -20,12 +20,10 @@ functions that need it: importing this module (the registry does) costs nothing.
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import re
-import threading
 from pathlib import Path
-from typing import Any, Iterator, Sequence
+from typing import Any, Sequence
 
 from vlm_vpr_ros.descriptors.shipped_weights import get_spec, shipped_weights
 from vlm_vpr_ros.errors import ConfigError, DescriptorError
@@ -102,32 +100,6 @@ def load_checkpoint(model: Any, path: Path, what: str, shipped: str = "",
     model.eval()
     log.info("loaded %s from %s (%d tensors)", what, path, len(state))
     return file_sha256(path)
-
-
-_THREADS = threading.Lock()
-
-
-@contextlib.contextmanager
-def torch_threads(n: int) -> Iterator[None]:
-    """torch's intra-op threads at ``n`` for the block (0: unchanged), restored after, as
-    :func:`vlm_vpr_ros.descriptors.local_xfeat.torch_threads` does for XFeat: torch's OpenMP
-    team spins for a core another thread holds, which on the loaded 2-core host made each model
-    call ~10x slower with its default of one thread per core (bench_learned.py). Process-wide:
-    blocks run one at a time."""
-    if n <= 0:
-        yield
-        return
-    import torch
-
-    with _THREADS:
-        before = torch.get_num_threads()
-        if before != n:
-            torch.set_num_threads(n)
-        try:
-            yield
-        finally:
-            if before != n:
-                torch.set_num_threads(before)
 
 
 def check_threads(n: Any, what: str) -> None:

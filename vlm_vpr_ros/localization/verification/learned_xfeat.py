@@ -28,7 +28,7 @@ from vlm_vpr_ros.localization.verification.components import (Component, LocalFe
 class XFeatConfig:
     max_side: int = 640
     device: str = "cpu"
-    threads: int = 1  # torch threads of the XFeat pass (local_xfeat.torch_threads)
+    threads: int = 1  # torch threads of the XFeat pass (threads.torch_threads)
 
 
 class XFeatFeature(LocalFeatureExtractor):
