@@ -41,22 +41,29 @@ class VladConfig:
         """Every value in range before any work: a bad option is one line at the start, not
         an OpenCV assertion (``max_side=1``) or a failure after the whole build
         (``pca_dim=0``)."""
-        ints = {"max_side": (32, 16384), "n_features": (1, 100_000), "n_words": (2, 4096),
-                "pca_dim": (1, 4096 * 128), "fit_max_images": (2, 10_000_000),
-                "fit_max_features": (4 * 2, 100_000_000), "seed": (0, 2 ** 32 - 1)}
-        for name, (lo, hi) in ints.items():
-            v = getattr(self, name)
-            if not isinstance(v, int) or isinstance(v, bool) or not lo <= v <= hi:
-                raise ValueError(f"{name} must be an integer in {lo}..{hi}, got {v!r}")
-        if self.fit_max_features < 4 * self.n_words:
-            raise ValueError(f"fit_max_features must be at least 4 x n_words "
-                             f"({4 * self.n_words}), got {self.fit_max_features}")
+        check_vlad_ints(self, {"max_side": (32, 16384), "n_features": (1, 100_000),
+                               "n_words": (2, 4096), "pca_dim": (1, 4096 * 128),
+                               "fit_max_images": (2, 10_000_000),
+                               "fit_max_features": (4 * 2, 100_000_000),
+                               "seed": (0, 2 ** 32 - 1)})
         if not isinstance(self.whiten, bool):
             raise ValueError(f"whiten must be true or false, got {self.whiten!r}")
         w = self.whiten_shrink
         if (not isinstance(w, (int, float)) or isinstance(w, bool) or not math.isfinite(w)
                 or not 0 <= w <= 1e6):
             raise ValueError(f"whiten_shrink must be a finite number >= 0, got {w!r}")
+
+
+def check_vlad_ints(cfg: Any, ranges: Mapping[str, tuple[int, int]]) -> None:
+    """ValueError naming the first integer setting of a VLAD config outside its range, or a
+    codebook sample too small for its words (``fit_max_features < 4 x n_words``)."""
+    for name, (lo, hi) in ranges.items():
+        v = getattr(cfg, name)
+        if not isinstance(v, int) or isinstance(v, bool) or not lo <= v <= hi:
+            raise ValueError(f"{name} must be an integer in {lo}..{hi}, got {v!r}")
+    if cfg.fit_max_features < 4 * cfg.n_words:
+        raise ValueError(f"fit_max_features must be at least 4 x n_words "
+                         f"({4 * cfg.n_words}), got {cfg.fit_max_features}")
 
 
 class VladRootSift(GlobalDescriptor):

@@ -30,6 +30,7 @@ import numpy as np
 from vlm_vpr_ros.config import from_mapping
 from vlm_vpr_ros.descriptors import DescriptorPreset, register_descriptor
 from vlm_vpr_ros.descriptors.global_descriptor import GlobalDescriptor, l2_normalize
+from vlm_vpr_ros.descriptors.vlad import check_vlad_ints
 from vlm_vpr_ros.errors import DescriptorError
 from vlm_vpr_ros.types import LocalFeatures
 
@@ -64,16 +65,10 @@ class VladXFeatConfig:
 
     def __post_init__(self) -> None:
         """Every value in range before any work (one line, not a failure after the build)."""
-        ints = {"max_side": (64, 8192), "n_keypoints": (1, 100_000), "n_words": (2, 4096),
-                "fit_max_images": (2, 10_000_000), "fit_max_features": (8, 100_000_000),
-                "seed": (0, 2 ** 32 - 1), "threads": (0, 64)}
-        for name, (lo, hi) in ints.items():
-            v = getattr(self, name)
-            if not isinstance(v, int) or isinstance(v, bool) or not lo <= v <= hi:
-                raise ValueError(f"{name} must be an integer in {lo}..{hi}, got {v!r}")
-        if self.fit_max_features < 4 * self.n_words:
-            raise ValueError(f"fit_max_features must be at least 4 x n_words "
-                             f"({4 * self.n_words}), got {self.fit_max_features}")
+        check_vlad_ints(self, {"max_side": (64, 8192), "n_keypoints": (1, 100_000),
+                               "n_words": (2, 4096), "fit_max_images": (2, 10_000_000),
+                               "fit_max_features": (8, 100_000_000),
+                               "seed": (0, 2 ** 32 - 1), "threads": (0, 64)})
         if not isinstance(self.power_norm, bool):
             raise ValueError(f"power_norm must be true or false, got {self.power_norm!r}")
         if not isinstance(self.device, str):
