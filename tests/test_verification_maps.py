@@ -252,10 +252,12 @@ def test_map_add_remove_keep_features_row_aligned(demo_half_map, demo_data, tmp_
     assert np.array_equal(store.get(*where[rows[39][0]]).descriptors, new.descriptors)
     doc = json.loads((m / after.manifest["verification_calibration"]).read_text())
     assert doc["per_condition"]["full"]["queries"] == after.n_references == 36 + 5 - 2
-    # recalibrated under the map's conditions, the degraded copies from the pictures the build
-    # recorded: the 4 references added later are not in that record (full size only)
+    # recalibrated under the map's conditions, the degraded copies from the pictures the record
+    # holds: it follows the edit (the removed references leave it, the ones added from the
+    # recorded folder join it), so every reference of the edited map has its degraded copies
     assert doc["conditions"] == before_conds and len(before_conds) > 1
-    assert all(doc["per_condition"][c]["queries"] == 39 - 4 for c in before_conds[1:])
+    assert all(doc["per_condition"][c]["queries"] == after.n_references
+               for c in before_conds[1:])
 
 
 def test_cli_results_evaluate_and_save_matches(demo_map, demo_data, tmp_path, capsys):
