@@ -84,3 +84,41 @@ def test_an_edit_keeps_the_maps_conditions(built, tmp_path):
     doc = load_doc(ReferenceMap.load(m))
     assert doc["conditions"] == CONDS
     assert doc["per_condition"]["fit480x360"]["queries"] == N - 1
+
+
+def test_options_reach_the_degraded_queries(built, tmp_path, monkeypatch):
+    """The feature and matcher options of a build or of ``calibrate`` (a learned preset's
+    ``device=cuda``, ``threads``) reach the verifier that extracts and matches the degraded
+    queries, not only the full-size matches (before: the degraded queries ran with the
+    defaults, a GPU build's calibration on the CPU)."""
+    import vlm_vpr_ros.mapping.local_features as lf
+
+    _, m, _ = _copy(built, tmp_path)
+    seen = []
+    real = lf.Verifier
+
+    def spy(ref_map, config, feature_options=None, matcher_options=None):
+        seen.append((dict(feature_options or {}), dict(matcher_options or {})))
+        return real(ref_map, config)  # SIFT takes neither: the spy only records them
+
+    monkeypatch.setattr(lf, "Verifier", spy)
+    doc = calibrate_map(ReferenceMap.load(m), conditions=CONDS,
+                        feature_options={"device": "cuda"}, matcher_options={})
+    assert seen == [({"device": "cuda"}, {})]
+    assert doc["per_condition"]["fit480x360"]["queries"] == N
+
+
+def test_calibrate_cli_checks_the_feature_options(built, tmp_path, caplog):
+    """``vlm-vpr calibrate --conditions ... --feature-option`` hands the option to the
+    degraded queries' extractor: one it does not know is exit 2 naming it, the old
+    calibration kept."""
+    from vlm_vpr_ros.cli import main
+
+    _, m, _ = _copy(built, tmp_path)
+    before = (m / "verification.json").read_bytes()
+    with caplog.at_level(logging.ERROR):
+        rc = main(["calibrate", "--map", str(m), "--conditions", ",".join(CONDS),
+                   "--feature-option", "no_such_option=1"])
+    said = [r.getMessage() for r in caplog.records if r.levelno == logging.ERROR]
+    assert rc == 2 and any("unknown sift option" in s and "no_such_option" in s for s in said)
+    assert (m / "verification.json").read_bytes() == before

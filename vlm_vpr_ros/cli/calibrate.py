@@ -52,6 +52,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--degraded-queries", type=int, default=None, metavar="N",
                    help="references queried under each degraded condition (default 60: the "
                         "cost bound; more keeps more fixes at the same threshold)")
+    p.add_argument("--feature-option", metavar="KEY=VALUE", action="append", default=[],
+                   help="with --conditions: local feature setting not stored in the map, "
+                        "repeatable (a learned preset's device=cuda, threads=N, weights=PATH)")
+    p.add_argument("--matcher-option", metavar="KEY=VALUE", action="append", default=[],
+                   help="with --conditions: matcher setting, repeatable (device=cuda, ...)")
     p.set_defaults(func=cmd_calibrate)
 
 
@@ -144,6 +149,7 @@ def _calibrate_conditions(args: argparse.Namespace) -> None:
     """``--conditions``: the leave-one-out calibration of p_correct and the protection level
     again, under the given query conditions (a user section of an earlier calibration is
     kept)."""
+    from vlm_vpr_ros.cli.common import parse_kv
     from vlm_vpr_ros.mapping.local_features import calibrate_map
     from vlm_vpr_ros.localization.verification.p_correct import (load_doc, save_doc,
                                                                    validate)
@@ -163,7 +169,9 @@ def _calibrate_conditions(args: argparse.Namespace) -> None:
     _check_pictures(ref_map, names, args.reference_images)
     old = load_doc(ref_map)
     doc = calibrate_map(ref_map, conditions=names, images_dir=args.reference_images or None,
-                        degraded_queries=args.degraded_queries)
+                        degraded_queries=args.degraded_queries,
+                        feature_options=parse_kv(args.feature_option),
+                        matcher_options=parse_kv(args.matcher_option))
     if doc is None:
         raise DataError(f"{args.map}: the map stores no local features: nothing to calibrate")
     if old is not None and old.get("user"):

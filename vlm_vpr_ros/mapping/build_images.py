@@ -237,6 +237,7 @@ def write_local_features(ref_map: ReferenceMap, refx: Any, features_of: Any,
              / max(1, ref_map.n_references) / 1e3, time.monotonic() - t0)
     calibrate_map(ref_map, loo_queries or LOO_QUERIES, progress=progress,
                   matcher_options=refx.matcher_options,
+                  feature_options=refx.feature_options,
                   conditions=refx.calibration_conditions, images_dir=images_dir,
                   descriptor=refx.descriptor)
 

@@ -59,7 +59,10 @@ class ReferenceExtractor:
                  feature_options: Mapping[str, Any] | None = None,
                  matcher_options: Mapping[str, Any] | None = None) -> None:
         self.descriptor = descriptor
-        self.matcher_options = dict(matcher_options or {})  # for the calibration's matches
+        # not stored in the map (device, threads, weights' paths): the calibration's matches
+        # and its degraded queries' features run with them, as the build's did
+        self.feature_options = dict(feature_options or {})
+        self.matcher_options = dict(matcher_options or {})
         #: query conditions of the verification calibration (None: the default mix)
         self.calibration_conditions: str | Sequence[str] | None = None
         self.preset: VerifierPreset | None = None
@@ -141,7 +144,8 @@ def calibrate_map(ref_map: Any, max_queries: int = LOO_QUERIES, top_k: int = 20,
                   matcher_options: Mapping[str, Any] | None = None,
                   conditions: str | Sequence[str] | None = None,
                   images_dir: str | Path | None = None, descriptor: Any = None,
-                  degraded_queries: int | None = None) -> dict[str, Any] | None:
+                  degraded_queries: int | None = None,
+                  feature_options: Mapping[str, Any] | None = None) -> dict[str, Any] | None:
     """Leave-one-out calibration of ``p_correct`` on a saved map with stored local features,
     written as its ``verification.json``; None when the map stores no features.
     ``conditions`` (default :data:`~.conditions.DEFAULT_CONDITIONS`): the query conditions;
@@ -150,7 +154,10 @@ def calibrate_map(ref_map: Any, max_queries: int = LOO_QUERIES, top_k: int = 20,
     images has every picture checked against the sizes and sha256 its build recorded:
     :class:`~vlm_vpr_ros.maps.map_images.SourceImages`) and the map's ``descriptor`` (created
     when None); without images only ``full`` is calibrated (a warning). ``degraded_queries``:
-    references queried under each degraded condition (default :data:`DEGRADED_QUERIES`)."""
+    references queried under each degraded condition (default :data:`DEGRADED_QUERIES`).
+    ``feature_options`` / ``matcher_options``: settings not stored in the map (a learned
+    preset's ``device``, ``threads``, weights' paths), used by every match and by the degraded
+    queries' feature extraction."""
     store = FeatureStore.open(Path(ref_map.path), ref_map.manifest)
     if store is None:
         return None
@@ -197,7 +204,8 @@ def calibrate_map(ref_map: Any, max_queries: int = LOO_QUERIES, top_k: int = 20,
 
     conds = [c.name for c in parse_conditions(conditions)]
     degraded, smallest = _degraded_queries(ref_map, conds, images_dir, descriptor, top_k,
-                                           extra,
+                                           extra, dict(feature_options or {}),
+                                           dict(matcher_options or {}),
                                            search_vec=lambda v, k: [
                                                (d, int(starts[si] + j)) for d, si, j in
                                                ref_map.search_submaps(everything, v, k)])
@@ -271,7 +279,8 @@ def calibrated_conditions(ref_map: Any) -> list[str] | None:
 
 
 def _degraded_queries(ref_map: Any, conds: Sequence[str], images_dir: str | Path | None,
-                      descriptor: Any, top_k: int, extra: int, search_vec: Callable
+                      descriptor: Any, top_k: int, extra: int, feature_options: dict,
+                      matcher_options: dict, search_vec: Callable
                       ) -> tuple[Callable | None, list[int]]:
     """(``degraded(row)`` for :func:`~.calibration.loo_records`, a one-element list that the
     calls fill with the smallest frame's longer side); (None, []) when no condition needs
@@ -288,7 +297,7 @@ def _degraded_queries(ref_map: Any, conds: Sequence[str], images_dir: str | Path
         return None, []
     if descriptor is None:
         descriptor = descriptor_for_map(ref_map, None, None)
-    verifier = Verifier(ref_map, {"top_k": max(1, top_k)})
+    verifier = Verifier(ref_map, {"top_k": max(1, top_k)}, feature_options, matcher_options)
     if not verifier.enabled:
         return None, []
     shared = verifier.reuses_sift_of(descriptor)
