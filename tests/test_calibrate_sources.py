@@ -122,3 +122,25 @@ def test_calibrate_cli_checks_the_feature_options(built, tmp_path, caplog):
     said = [r.getMessage() for r in caplog.records if r.levelno == logging.ERROR]
     assert rc == 2 and any("unknown sift option" in s and "no_such_option" in s for s in said)
     assert (m / "verification.json").read_bytes() == before
+
+
+def test_the_strongest_wrong_answers_are_recorded_and_explained(built):
+    """verification.json keeps the strongest wrong leave-one-out answers by the references'
+    ids (what sets the fix threshold), and ``calibrate`` names the ratio a fix needs: just
+    above it ``p_correct`` reaches the level, just below it not."""
+    from vlm_vpr_ros.cli.calibrate import threshold_summary
+    from vlm_vpr_ros.localization.verification.p_correct import PCorrect
+
+    _, m, ids = built
+    doc = load_doc(ReferenceMap.load(m))
+    sw = doc["strongest_wrong"]
+    assert sw and len(sw) <= 10
+    assert [r["score"] for r in sw] == sorted(doc["null_scores"], reverse=True)[:len(sw)]
+    assert all(r["query"] in ids and r["answer"] in ids and r["query"] != r["answer"]
+               and r["error_m"] > doc["place_radius_m"] for r in sw)
+    model = PCorrect.from_doc(doc)
+    for level in (0.5, 0.9):
+        head = threshold_summary(doc, level).splitlines()[0]
+        t = float(head.split("above ")[1].split(" ")[0])
+        assert model.p_correct(t - 1e-6) < level <= model.p_correct(t + 1e-6)
+    assert "no fix on this calibration" in threshold_summary(doc, 0.99)  # 8 + 8 queries

@@ -181,6 +181,35 @@ def _calibrate_conditions(args: argparse.Namespace) -> None:
     print(f"verification calibration under {','.join(doc['conditions'])}: {loo['queries']} "
           f"leave-one-out queries ({loo['wrong']} wrong, {loo['right']} right), protection "
           f"residual {doc['protection']['residual_m']:g} m, {loo['seconds']:g} s")
+    print(threshold_summary(doc))
+
+
+def threshold_summary(doc: dict, level: float = 0.99, show: int = 5) -> str:
+    """What sets the fix threshold of a verification calibration: the inlier ratio that
+    ``p_correct >= level`` needs and the strongest wrong leave-one-out answers (a pair of
+    references showing one view but geotagged far apart holds every answer below it back:
+    correct or remove one of them; docs/verification.md section 7)."""
+    from vlm_vpr_ros.localization.verification.evidence import AMBIGUOUS_RATIO
+
+    null = sorted(float(x) for x in doc.get("null_scores", []))
+    n = len(null)
+    allowed = math.floor((1.0 - level) * (1 + n) - 1 + 1e-9)  # wrong scores >= s allowed
+    if allowed < 0:
+        head = (f"p_correct >= {level:g} needs at least {math.ceil(1 / (1 - level) - 1 - 1e-9)}"
+                f" wrong leave-one-out answers ({n}): no fix on this calibration")
+    else:  # ... and, below AMBIGUOUS_RATIO, a ratio whose cap r / (1 + r) reaches the level
+        cap = AMBIGUOUS_RATIO if level > AMBIGUOUS_RATIO / (1 + AMBIGUOUS_RATIO) \
+            else level / (1.0 - level)
+        need = max(null[n - allowed - 1] if allowed < n else 0.0, cap)
+        head = (f"p_correct >= {level:g} needs an inlier ratio above {need:g} (wrong "
+                f"leave-one-out answers: {n}, the strongest {allowed + 1} score >= "
+                f"{null[max(n - allowed - 1, 0)]:g})")
+    lines = [head]
+    for r in doc.get("strongest_wrong", [])[:show]:
+        lines.append(f"  wrong {r.get('condition')}: {r.get('query')} -> {r.get('answer')}, "
+                     f"{r.get('error_m')} m off, {r.get('inliers')} inliers, ratio "
+                     f"{r.get('score')}")
+    return "\n".join(lines)
 
 
 def _check_pictures(ref_map: Any, names: list[str], reference_images: str) -> None:

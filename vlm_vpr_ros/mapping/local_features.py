@@ -238,6 +238,9 @@ def calibrate_map(ref_map: Any, max_queries: int = LOO_QUERIES, top_k: int = 20,
                               copies_of=lambda g: copies.get(g, ()))
     if bar is not None:
         bar.close()
+    ids = ref_map.all_ids()
+    for r in doc["strongest_wrong"]:  # rows change with edits: the references' ids stay
+        r["query"], r["answer"] = ids[r.pop("query_row")], ids[r.pop("answer_row")]
     doc["min_long_side_px"] = int(smallest[0]) if smallest else 0
     doc["feature"] = store.feature
     doc["preset"] = store.preset

@@ -67,6 +67,9 @@ SUPPORT_SHARE = 0.25
 NOISE_PAIRS = 300
 NOISE_MIN_DISTANCE_M = 250.0
 NOISE_QUANTILE = 0.95
+#: the strongest wrong leave-one-out answers kept in the document (what sets the threshold; a
+#: user's map with references of one view geotagged far apart shows them: `vlm-vpr calibrate`)
+STRONGEST_WRONG = 10
 #: the competitor floor is never below this: MAGSAC fits 8-12 "inliers" among pure noise
 #: (tests/test_verification.py), the floor the SIFT calibration was built on
 MIN_COMPETITOR_FLOOR = 12
@@ -305,6 +308,7 @@ def calibration_doc(records: Sequence[LooRecord], coords: np.ndarray, top_k: int
     wrong, right_err, per = [], [], {c: {"queries": 0, "wrong": 0, "right": 0}
                                      for c in conditions}
     graded = []  # (score, error m, support spread m, place in the map) above the noise level
+    strongest = []  # the wrong answers: what sets the fix threshold (STRONGEST_WRONG kept)
     xyz = latlon_to_unit(coords[:, 0], coords[:, 1]) if len(coords) else np.zeros((0, 3))
     cos_r = math.cos(cfg.place_radius_m / 1000.0 / EARTH_RADIUS_KM)
     in_map: dict[int, bool] = {}
@@ -328,6 +332,8 @@ def calibration_doc(records: Sequence[LooRecord], coords: np.ndarray, top_k: int
             pc["right"] += 1
         else:
             wrong.append(round(float(ev.score), 4))
+            strongest.append((round(float(ev.score), 4), cond, int(qi), int(w), round(err, 1),
+                              int(ev.winner_inliers)))
             pc["wrong"] += 1
         if ev.winner_inliers > cfg.competitor_floor:
             graded.append((float(ev.score), err, support_spread_m(
@@ -343,7 +349,10 @@ def calibration_doc(records: Sequence[LooRecord], coords: np.ndarray, top_k: int
             "protection": {"integrity_risk": INTEGRITY_RISK, "support_share": SUPPORT_SHARE,
                            "residual_m": round(residual, 1), "fix_grade_answers": n_fix},
             "loo": {"queries": len(records), "wrong": len(wrong), "right": len(right_err),
-                    "seconds": round(seconds, 1)}}
+                    "seconds": round(seconds, 1)},
+            "strongest_wrong": [dict(zip(("score", "condition", "query_row", "answer_row",
+                                          "error_m", "inliers"), r))
+                                for r in sorted(strongest, reverse=True)[:STRONGEST_WRONG]]}
 
 
 def protection_residual(model: PCorrect, graded: Sequence[tuple[float, float, float, bool]],
@@ -402,6 +411,9 @@ def validate(doc: Any, where: str) -> dict[str, Any]:
         side = doc.get("min_long_side_px")
         if not isinstance(side, int) or isinstance(side, bool) or side < 0:
             raise MapError(f"{where}: min_long_side_px must be an integer >= 0")
+    sw = doc.get("strongest_wrong", [])
+    if not isinstance(sw, list) or not all(isinstance(r, dict) for r in sw):
+        raise MapError(f"{where}: strongest_wrong must be a list of objects")
     user = doc.get("user")
     if user is not None and (not isinstance(user, dict)
                              or not isinstance(user.get("null_scores"), list)):
