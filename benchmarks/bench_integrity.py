@@ -47,14 +47,16 @@ CITY_CENTRE = (37.7749, -122.4194)
 QUERY_CONDITIONS = ("full", "fit640x480", "fit480x360", "jpeg40_640x480")
 
 
-def calibrate(map_dir: Path, root: Path, conditions: str) -> float:
-    """Recalibrate the map's verification under ``conditions``; seconds."""
+def calibrate(map_dir: Path, root: Path, conditions: str, options: dict) -> float:
+    """Recalibrate the map's verification under ``conditions`` (``options``: the learned
+    preset's feature_options / matcher_options, e.g. device=cuda); seconds."""
+    from vlm_vpr_ros.cli.calibrate import threshold_summary
     from vlm_vpr_ros.mapping.local_features import calibrate_map
     from vlm_vpr_ros.maps.reference_map import ReferenceMap
 
     t0 = time.monotonic()
     doc = calibrate_map(ReferenceMap.load(map_dir), conditions=conditions,
-                        images_dir=root)
+                        images_dir=root, **options)
     dt = time.monotonic() - t0
     loo = doc["loo"]
     print(f"calibration {conditions}: {loo['queries']} leave-one-out queries, {loo['wrong']} "
@@ -66,6 +68,7 @@ def calibrate(map_dir: Path, root: Path, conditions: str) -> float:
           f"{doc['competitor_floor']} ({nz.get('seconds')} s of the calibration)")
     for c, v in doc["per_condition"].items():
         print(f"    {c:<16} {v}")
+    print(threshold_summary(doc))
     return dt
 
 
@@ -302,15 +305,15 @@ def main() -> int:
         return 0
     if args.study:
         study(args.map, args.data, args.study)
+    verification = {"feature_options": parse_kv(args.feature_option),
+                    "matcher_options": parse_kv(args.matcher_option)}
     if not args.no_calibrate:
-        t1 = calibrate(args.map, args.data, "full")
-        t4 = calibrate(args.map, args.data, ",".join(QUERY_CONDITIONS))
+        t1 = calibrate(args.map, args.data, "full", verification)
+        t4 = calibrate(args.map, args.data, ",".join(QUERY_CONDITIONS), verification)
         print(f"calibration cost: four conditions {t4:.1f} s vs full size only {t1:.1f} s "
               f"= {t4 / t1:.2f}x (target <= 3x)")
     print(f"added per-query work (support spread + conditions check): {overhead():.0f} us")
     records: dict = {}
-    verification = {"feature_options": parse_kv(args.feature_option),
-                    "matcher_options": parse_kv(args.matcher_option)}
     res = run_queries(args.map, args.data, records, verification=verification)
     ok = report(res)
     if args.save:

@@ -42,6 +42,14 @@ def test_learned_feature_weights_reach_verification(tmp_path):
     assert NodeConfig().verification_config().feature_options == {}
 
 
+def test_verify_preset_reaches_verification(tmp_path):
+    """verify_preset (as the CLI's --verify-preset): the verification stage refuses a map of
+    another preset, naming both (tests/test_verify_preset.py)."""
+    cfg = from_params({"map_dir": str(tmp_path), "verify_preset": "xfeat_lighterglue"})
+    assert cfg.verification_config().preset == "xfeat_lighterglue"
+    assert NodeConfig().verification_config().preset == ""
+
+
 def test_docs_parameter_table_is_the_schema():
     """docs/node.md's parameter table lists every parameter once, and its runtime column says
     exactly which ones are writable at runtime (the runtime-tuning contract)."""
@@ -73,6 +81,7 @@ def test_docs_parameter_table_is_the_schema():
     ({"top_p": 0}, "top_p"),
     ({"subscribe_raw": False}, "nothing to localize"),
     ({"prior_provider": "oracle"}, "unknown prior provider 'oracle'; choices: .*fixed"),
+    ({"verify_preset": "orb"}, "'verify_preset' is 'orb'; choices: '', sift, xfeat_lighterglue"),
     ({"map_dir": ""}, "'map_dir' is required"),
     ({"map_dir": "/nonexistent/map"}, "is not a folder"),
 ])

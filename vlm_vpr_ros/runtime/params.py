@@ -2,16 +2,15 @@
 
 Every parameter is a field of :class:`NodeConfig` with its default, a one-line description, an
 optional range and choices (:data:`PARAMETER_SPECS`); the node declares each one once from this
-schema with a ``ParameterDescriptor`` (type, description, range, read-only), so
-``ros2 param describe`` and docs/node.md show the same text. Parameters marked ``writable`` may
-change at runtime (``ros2 param set``; :data:`RUNTIME_WRITABLE`), validated by the same
-:func:`from_params`; the others are structural and :func:`refusal_reason` says how to change
-them. Provider settings are nested under ``prior.`` (``prior.base_url``, ``prior.model``,
-``prior.lat`` ...), descriptor options under ``descriptor_options.`` and the options of
-verification's learned local features and matcher under ``feature_options.`` /
-``matcher_options.`` (``weights`` paths, ``device``); all are passed through to the registries,
-which reject unknown keys. Unknown top-level names and wrongly typed values raise
-:class:`ConfigError`.
+schema with a ``ParameterDescriptor`` (type, description, range, read-only), so ``ros2 param
+describe`` and docs/node.md show the same text. Parameters marked ``writable`` may change at
+runtime (``ros2 param set``; :data:`RUNTIME_WRITABLE`), validated by the same :func:`from_params`;
+the others are structural and :func:`refusal_reason` says how to change them. Provider settings are
+nested under ``prior.`` (``prior.base_url``, ``prior.model``, ``prior.lat`` ...), descriptor
+options under ``descriptor_options.`` and the options of verification's learned local features and
+matcher under ``feature_options.`` / ``matcher_options.`` (``weights`` paths, ``device``); all are
+passed through to the registries, which reject unknown keys. Unknown top-level names and wrongly
+typed values raise :class:`ConfigError`.
 """
 
 from __future__ import annotations
@@ -26,6 +25,7 @@ from typing import Any, Mapping
 from vlm_vpr_ros.config import choose
 from vlm_vpr_ros.errors import ConfigError
 from vlm_vpr_ros.localization.localizer import FUSION_MODES, LocalizerConfig
+from vlm_vpr_ros.localization.verification.presets import PRESETS
 from vlm_vpr_ros.localization.verification.stage import VerificationConfig
 from vlm_vpr_ros.localization.verification.status import FALLBACK_STATUS, MAX_SIGMA_M, StatusPolicy
 from vlm_vpr_ros.priors import available_prior_providers
@@ -129,6 +129,9 @@ class NodeConfig:
     verify_threads: int = _p(0, "threads sharing a query's verification candidates (0 = the "
                                 "usable cores, at most 4; the answers do not depend on it)",
                              0, 64)
+    verify_preset: str = _p("", "verification preset this node expects ('' = the map's own); "
+                               "a map of another fails configure, naming both",
+                            choices=("", *PRESETS))
     verification_required: bool = _p(False, "a map without usable local features (and no "
                                             "reference_images_dir) fails configure; false: "
                                             "a warning and unverified answers")
@@ -207,7 +210,8 @@ class NodeConfig:
                                   os.path.expanduser(self.reference_images_dir),
                                   threads=self.verify_threads,
                                   feature_options=_expanded(self.feature_options),
-                                  matcher_options=_expanded(self.matcher_options))
+                                  matcher_options=_expanded(self.matcher_options),
+                                  preset=self.verify_preset)
 
     def status_policy(self) -> StatusPolicy:
         return StatusPolicy(self.fix_min_p_correct, self.fix_max_sigma_m,
@@ -241,7 +245,7 @@ PARAMETERS: dict[str, tuple[Any, str]] = {n: (p.default, p.doc)
                                           for n, p in PARAMETER_SPECS.items()}
 _TYPES = {f.name: f.type for f in dataclasses.fields(NodeConfig)}
 _MAP_SETTINGS = ("map_dir", "descriptor", "verify_map", "descriptor_options",
-                 "feature_options", "matcher_options")
+                 "feature_options", "matcher_options", "verify_preset")
 
 
 def refusal_reason(name: str) -> str:
@@ -300,7 +304,8 @@ def _require(cond: bool, msg: str) -> None:
 
 
 def _choice(name: str, value: str, choices: tuple[str, ...]) -> None:
-    _require(value in choices, f"parameter {name!r} is {value!r}; choices: {', '.join(choices)}")
+    _require(value in choices, f"parameter {name!r} is {value!r}; choices: "
+                               f"{', '.join(c or repr(c) for c in choices)}")
 
 
 def validate(cfg: NodeConfig, check_paths: bool = True) -> None:
