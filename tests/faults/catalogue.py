@@ -422,6 +422,9 @@ CATALOGUE: dict[str, tuple[str, str, str]] = {
     "localize_checks_before_map": ("cli", "`localize` with a bad priors CSV, `--prior-option` "
                                           "or status option, `--only-wrong` alone",
                                    "exit 2 before the map is opened, no results file"),
+    "bag_checks_priors_before_map": ("cli", "`evaluate-bag` and `ablate --bag` with a bad "
+                                            "priors CSV",
+                                     "exit 2 before the map is opened, no output folder"),
     "out_localize_over_inputs": ("output", "`localize --out` the queries CSV (a results CSV of "
                                            "ours), the priors CSV (also by a hard link) or "
                                            "the ground truth, with `--overwrite` / `--resume`",

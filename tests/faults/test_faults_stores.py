@@ -350,6 +350,24 @@ def test_localize_checks_everything_before_the_map(cli, demo_map, demo_data, que
         assert not map_loads and not out.exists()
 
 
+@pytest.mark.fault("bag_checks_priors_before_map")
+def test_bag_commands_check_the_priors_before_the_map(cli, demo_map, demo_data, queries,
+                                                      tmp_path, map_loads):
+    """Before: `evaluate-bag` and `ablate` opened the map first, then exit 2 on the priors."""
+    from vlm_vpr_ros.bags.make import make_bag
+
+    bag = tmp_path / "bag"
+    coords = tmp_path / "coords.csv"
+    coords.write_text("\n".join((demo_data / "coords.csv").read_text().splitlines()[:3]) + "\n")
+    make_bag(demo_data / "images", coords, bag, progress=False)
+    bad = tmp_path / "p.csv"
+    bad.write_text(f"file,lat,lon,sigma_m\n{queries.read_text().split()[1]},37.7,-122.4,3e7\n")
+    for cmd in (["evaluate-bag", bag], ["ablate", "--bag", bag]):
+        out = tmp_path / f"out_{cmd[0]}"
+        exit2(cli(*cmd, "--map", demo_map, "--priors", bad, "--out", out), str(bad), "sigma_m")
+        assert not map_loads and not out.exists()
+
+
 @pytest.mark.fault("out_localize_over_inputs")
 def test_localize_out_never_an_input(cli, demo_map, demo_data, queries, tmp_path, map_loads):
     """Before: `--queries r.csv --out r.csv --overwrite` replaced the queries (a results CSV of

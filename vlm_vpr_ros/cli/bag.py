@@ -232,14 +232,14 @@ def cmd_evaluate_bag(args: argparse.Namespace) -> int:
     # fail before loading the map; never holding an input (a swap would drop it)
     check_not_inside(out, [bag.path, args.map, *prior_inputs(args)])
     check_target(out, "evaluation", args.overwrite)
-    pipe = LocalizationPipeline.open(args.map, localizer=localizer_config(args),
-                                     descriptor_config=descriptor_options(args))
-    pipe.map.open_submaps()  # a damaged map: exit 2 before the first frame
-    cfg = BagEvalConfig(image_topic=args.image_topic, gt_topic=args.gt_topic,
-                        max_gt_gap_s=args.max_gt_gap, max_frames=args.max_frames,
-                        prior_timeout_s=args.prior_timeout, alert_limit_m=alert_m)
-    provider = make_prior_provider(args)
+    provider = make_prior_provider(args)  # a bad priors CSV or option: exit 2 before the map
     try:
+        pipe = LocalizationPipeline.open(args.map, localizer=localizer_config(args),
+                                         descriptor_config=descriptor_options(args))
+        pipe.map.open_submaps()  # a damaged map: exit 2 before the first frame
+        cfg = BagEvalConfig(image_topic=args.image_topic, gt_topic=args.gt_topic,
+                            max_gt_gap_s=args.max_gt_gap, max_frames=args.max_frames,
+                            prior_timeout_s=args.prior_timeout, alert_limit_m=alert_m)
         res = evaluate_bag(bag, pipe, provider, out, cfg, plots=not args.no_plots,
                            overwrite=args.overwrite)
     finally:
@@ -279,10 +279,10 @@ def cmd_ablate(args: argparse.Namespace) -> int:
     out = Path(args.out)
     _check_ablation_out(out, [args.map, args.bag],
                         [args.images, args.queries, *prior_inputs(args)])
-    pipe = LocalizationPipeline.open(args.map, descriptor_config=descriptor_options(args))
-    pipe.map.open_submaps()
-    provider = make_prior_provider(args)
+    provider = make_prior_provider(args)  # a bad priors CSV or option: exit 2 before the map
     try:
+        pipe = LocalizationPipeline.open(args.map, descriptor_config=descriptor_options(args))
+        pipe.map.open_submaps()
         desc, truth, priors = ablation_inputs(args, pipe, provider)
     finally:
         provider.close()
