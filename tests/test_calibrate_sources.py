@@ -138,9 +138,13 @@ def test_the_strongest_wrong_answers_are_recorded_and_explained(built):
     assert [r["score"] for r in sw] == sorted(doc["null_scores"], reverse=True)[:len(sw)]
     assert all(r["query"] in ids and r["answer"] in ids and r["query"] != r["answer"]
                and r["error_m"] > doc["place_radius_m"] for r in sw)
-    model = PCorrect.from_doc(doc)
-    for level in (0.5, 0.9):
-        head = threshold_summary(doc, level).splitlines()[0]
-        t = float(head.split("above ")[1].split(" ")[0])
-        assert model.p_correct(t - 1e-6) < level <= model.p_correct(t + 1e-6)
+    # a user's wrong answers (calibrate --results) join the null set: the threshold follows
+    with_user = {**doc, "user": {"null_scores": [7.5] * 30, "queries": 30, "results": "r.csv"}}
+    for d in (doc, with_user):
+        model = PCorrect.from_doc(d)
+        for level in (0.5, 0.9):
+            head = threshold_summary(d, level).splitlines()[0]
+            t = float(head.split("above ")[1].split(" ")[0])
+            assert model.p_correct(t - 1e-6) < level <= model.p_correct(t + 1e-6)
+    assert "above 7.5 " in threshold_summary(with_user, 0.9)
     assert "no fix on this calibration" in threshold_summary(doc, 0.99)  # 8 + 8 queries

@@ -186,24 +186,27 @@ def _calibrate_conditions(args: argparse.Namespace) -> None:
 
 def threshold_summary(doc: dict, level: float = 0.99, show: int = 5) -> str:
     """What sets the fix threshold of a verification calibration: the inlier ratio that
-    ``p_correct >= level`` needs and the strongest wrong leave-one-out answers (a pair of
-    references showing one view but geotagged far apart holds every answer below it back:
-    correct or remove one of them; docs/verification.md section 7)."""
+    ``p_correct >= level`` needs (asked of the calibrated model itself, the user's negatives
+    included) and the strongest wrong leave-one-out answers (a pair of references showing one
+    view but geotagged far apart holds every answer below it back: correct or remove one of
+    them; docs/verification.md section 7)."""
     from vlm_vpr_ros.localization.verification.evidence import AMBIGUOUS_RATIO
+    from vlm_vpr_ros.localization.verification.p_correct import PCorrect
 
-    null = sorted(float(x) for x in doc.get("null_scores", []))
-    n = len(null)
-    allowed = math.floor((1.0 - level) * (1 + n) - 1 + 1e-9)  # wrong scores >= s allowed
-    if allowed < 0:
-        head = (f"p_correct >= {level:g} needs at least {math.ceil(1 / (1 - level) - 1 - 1e-9)}"
-                f" wrong leave-one-out answers ({n}): no fix on this calibration")
-    else:  # ... and, below AMBIGUOUS_RATIO, a ratio whose cap r / (1 + r) reaches the level
-        cap = AMBIGUOUS_RATIO if level > AMBIGUOUS_RATIO / (1 + AMBIGUOUS_RATIO) \
-            else level / (1.0 - level)
-        need = max(null[n - allowed - 1] if allowed < n else 0.0, cap)
+    model = PCorrect.from_doc(doc)
+    null = model.null_scores
+    # p_correct steps up just above a wrong answer's score; below AMBIGUOUS_RATIO its cap
+    # r / (1 + r) reaches the level at level / (1 - level): the threshold is one of these
+    steps = sorted({0.0, AMBIGUOUS_RATIO, level / (1.0 - level), *null.tolist()})
+    need = next((t for t in steps
+                 if model.p_correct(math.nextafter(t, math.inf)) >= level), None)
+    if need is None:
+        head = (f"no score reaches p_correct >= {level:g} with {len(null)} wrong "
+                "leave-one-out answers: no fix on this calibration")
+    else:
         head = (f"p_correct >= {level:g} needs an inlier ratio above {need:g} (wrong "
-                f"leave-one-out answers: {n}, the strongest {allowed + 1} score >= "
-                f"{null[max(n - allowed - 1, 0)]:g})")
+                f"leave-one-out answers: {len(null)}, the strongest {int((null >= need).sum())} "
+                f"score >= {need:g})")
     lines = [head]
     for r in doc.get("strongest_wrong", [])[:show]:
         lines.append(f"  wrong {r.get('condition')}: {r.get('query')} -> {r.get('answer')}, "

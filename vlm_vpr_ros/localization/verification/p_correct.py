@@ -305,10 +305,11 @@ def calibration_doc(records: Sequence[LooRecord], coords: np.ndarray, top_k: int
     scores (pooled over the conditions), the right answers' errors, per-condition counts and
     the protection level's residual (:func:`protection_residual`)."""
     coords = np.asarray(coords, np.float64)
-    wrong, right_err, per = [], [], {c: {"queries": 0, "wrong": 0, "right": 0}
-                                     for c in conditions}
+    right_err, per = [], {c: {"queries": 0, "wrong": 0, "right": 0} for c in conditions}
+    #: the wrong answers (score, condition, query row, answer row, error m, inliers): their
+    #: scores are the null set, the strongest STRONGEST_WRONG are kept (what sets the threshold)
+    wrong: list[tuple[float, str, int, int, float, int]] = []
     graded = []  # (score, error m, support spread m, place in the map) above the noise level
-    strongest = []  # the wrong answers: what sets the fix threshold (STRONGEST_WRONG kept)
     xyz = latlon_to_unit(coords[:, 0], coords[:, 1]) if len(coords) else np.zeros((0, 3))
     cos_r = math.cos(cfg.place_radius_m / 1000.0 / EARTH_RADIUS_KM)
     in_map: dict[int, bool] = {}
@@ -331,18 +332,18 @@ def calibration_doc(records: Sequence[LooRecord], coords: np.ndarray, top_k: int
             right_err.append(round(err, 2))
             pc["right"] += 1
         else:
-            wrong.append(round(float(ev.score), 4))
-            strongest.append((round(float(ev.score), 4), cond, int(qi), int(w), round(err, 1),
-                              int(ev.winner_inliers)))
+            wrong.append((round(float(ev.score), 4), cond, int(qi), int(w), round(err, 1),
+                          int(ev.winner_inliers)))
             pc["wrong"] += 1
         if ev.winner_inliers > cfg.competitor_floor:
             graded.append((float(ev.score), err, support_spread_m(
                 lat, lon, inl, ev.winner, cfg.competitor_floor), mapped(qi)))
-    model = PCorrect(np.sort(np.asarray(wrong, np.float64)), cfg.place_radius_m)
+    null = sorted(r[0] for r in wrong)
+    model = PCorrect(np.asarray(null, np.float64), cfg.place_radius_m)
     residual, n_fix = protection_residual(model, graded, cfg.place_radius_m)
     return {"format": VERIFY_CAL_FORMAT, "version": VERIFY_CAL_VERSION,
             "place_radius_m": cfg.place_radius_m, "competitor_floor": cfg.competitor_floor,
-            "top_k": int(top_k), "null_scores": sorted(wrong),
+            "top_k": int(top_k), "null_scores": null,
             "place_errors_m": sorted(right_err),
             "conditions": list(conditions), "min_long_side_px": int(min_long_side_px),
             "per_condition": per,
@@ -352,7 +353,7 @@ def calibration_doc(records: Sequence[LooRecord], coords: np.ndarray, top_k: int
                     "seconds": round(seconds, 1)},
             "strongest_wrong": [dict(zip(("score", "condition", "query_row", "answer_row",
                                           "error_m", "inliers"), r))
-                                for r in sorted(strongest, reverse=True)[:STRONGEST_WRONG]]}
+                                for r in sorted(wrong, reverse=True)[:STRONGEST_WRONG]]}
 
 
 def protection_residual(model: PCorrect, graded: Sequence[tuple[float, float, float, bool]],
