@@ -59,6 +59,36 @@ def pytest_terminal_summary(terminalreporter) -> None:
         f"{len(failed)} failed (crash / data lost / secret leaked): {failed or 'none'}")
 
 
+@pytest.fixture
+def map_loads(monkeypatch) -> list[str]:
+    """The maps a command opened (ReferenceMap.load), in order: checks that must come before
+    the map is loaded assert it stays empty."""
+    from vlm_vpr_ros.maps.reference_map import ReferenceMap
+
+    calls: list[str] = []
+    load = ReferenceMap.load.__func__
+
+    def spy(cls, path, *a, **k):
+        calls.append(str(path))
+        return load(cls, path, *a, **k)
+
+    monkeypatch.setattr(ReferenceMap, "load", classmethod(spy))
+    return calls
+
+
+@pytest.fixture(scope="module")
+def one_torch_thread():
+    """torch on one thread while a module runs (``pytestmark = pytest.mark.usefixtures(...)``):
+    its OpenMP threads spin while they wait, which on a loaded 2-core host made each model call
+    ~10x slower (bench_learned.py)."""
+    import torch
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
 @pytest.fixture(scope="session")
 def demo_data() -> Path:
     """The shipped demo folder: images/, coords.csv, priors_osv5m_baseline.csv."""

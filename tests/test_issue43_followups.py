@@ -68,22 +68,6 @@ def test_a_sigma_inside_the_rule_is_used(two_towns, sigma_km):
 
 # -- 2a. every check before the map is opened ----------------------------------------------------
 @pytest.fixture
-def opened(monkeypatch):
-    """Records every map opened (ReferenceMap.load) by the command."""
-    from vlm_vpr_ros.maps.reference_map import ReferenceMap
-
-    calls: list[str] = []
-    load = ReferenceMap.load.__func__
-
-    def spy(cls, path, *a, **k):
-        calls.append(str(path))
-        return load(cls, path, *a, **k)
-
-    monkeypatch.setattr(ReferenceMap, "load", classmethod(spy))
-    return calls
-
-
-@pytest.fixture
 def queries(demo_data, tmp_path) -> Path:
     names = sorted(p.name for p in (demo_data / "images").iterdir())[:3]
     q = tmp_path / "q.csv"
@@ -97,7 +81,7 @@ def _localize(demo_map, demo_data, queries, out, *extra) -> int:
 
 
 def test_bad_priors_and_options_refused_before_the_map(demo_map, demo_data, queries, tmp_path,
-                                                       opened):
+                                                       map_loads):
     names = queries.read_text().split()[1:]
     bad = tmp_path / "p.csv"
     bad.write_text(f"file,lat,lon,sigma_m\n{names[0]},37.7,-122.4,1e-300\n")
@@ -114,26 +98,26 @@ def test_bad_priors_and_options_refused_before_the_map(demo_map, demo_data, quer
              ("--save-matches", tmp_path / "m", "--ground-truth", tmp_path / "missing.csv")]
     for extra in cases:
         assert _localize(demo_map, demo_data, queries, out, *extra) == 2, extra
-        assert not opened, (extra, opened)
+        assert not map_loads, (extra, map_loads)
         assert not out.exists() and not out.with_name("r.csv.partial").exists()
     desc = tmp_path / "q.npy"
     np.save(desc, np.zeros((3, 70), np.float32))
     assert main(["localize", "--map", str(demo_map), "--query-descriptors", str(desc),
                  "--queries", str(queries), "--out", str(out), "--priors", str(bad)]) == 2
-    assert not opened
+    assert not map_loads
     # a good prior still runs (the map is then opened once)
     good = tmp_path / "good.csv"
     good.write_text(f"file,lat,lon\n{names[0]},37.7,-122.4\n")
     assert _localize(demo_map, demo_data, queries, out, "--priors", good) == 0
-    assert opened == [str(demo_map)] and out.is_file()
+    assert map_loads == [str(demo_map)] and out.is_file()
 
 
 # -- 2b. --out is never an input -----------------------------------------------------------------
 def test_out_is_never_an_input_even_a_results_csv(demo_map, demo_data, queries, tmp_path,
-                                                  opened):
+                                                  map_loads):
     out = tmp_path / "r.csv"
     assert _localize(demo_map, demo_data, queries, out) == 0
-    opened.clear()
+    map_loads.clear()
     gt = tmp_path / "gt.csv"
     shutil.copy(out, gt)  # results CSVs of ours, given as inputs
     pri = tmp_path / "pri.csv"
@@ -151,18 +135,18 @@ def test_out_is_never_an_input_even_a_results_csv(demo_map, demo_data, queries, 
             rc = main(["localize", "--map", str(demo_map), "--images",
                        str(demo_data / "images"), *map(str, run), mode])
             assert rc == 2, (run, mode)
-            assert _sha(tmp_path) == before and not opened
+            assert _sha(tmp_path) == before and not map_loads
     # the unfinished file beside --out is never an input either
     q2 = tmp_path / "x.csv.partial"
     shutil.copy(queries, q2)
     before = _sha(tmp_path)
     assert main(["localize", "--map", str(demo_map), "--images", str(demo_data / "images"),
                  "--queries", str(q2), "--out", str(tmp_path / "x.csv"), "--overwrite"]) == 2
-    assert _sha(tmp_path) == before and not opened
+    assert _sha(tmp_path) == before and not map_loads
 
 
 # -- 2c. --save-matches: never in an input folder, never over a user's file ---------------------
-def test_save_matches_never_in_an_input_folder(demo_map, demo_data, queries, tmp_path, opened):
+def test_save_matches_never_in_an_input_folder(demo_map, demo_data, queries, tmp_path, map_loads):
     from vlm_vpr_ros.evaluation.matches import sheet_names
 
     imgs = tmp_path / "imgs"
@@ -179,7 +163,7 @@ def test_save_matches_never_in_an_input_folder(demo_map, demo_data, queries, tmp
                    str(queries), "--out", str(out), "--save-matches", str(d),
                    "--reference-images", str(refs), "--overwrite"])
         assert rc == 2, d
-        assert _sha(tmp_path) == before and not opened and not out.exists()
+        assert _sha(tmp_path) == before and not map_loads and not out.exists()
     # a user's folder holding a same-named file and other files: never replaced
     mine = tmp_path / "mine"
     mine.mkdir()
@@ -188,7 +172,7 @@ def test_save_matches_never_in_an_input_folder(demo_map, demo_data, queries, tmp
     before = _sha(mine)
     rc = main(["localize", "--map", str(demo_map), "--images", str(imgs), "--queries",
                str(queries), "--out", str(out), "--save-matches", str(mine), "--overwrite"])
-    assert rc == 2 and _sha(mine) == before and not opened
+    assert rc == 2 and _sha(mine) == before and not map_loads
 
 
 def test_save_matches_overwrite_replaces_our_pictures(demo_map, demo_data, queries, tmp_path):

@@ -17,14 +17,7 @@ from vlm_vpr_ros.localization.verification.components import create_feature, cre
 from vlm_vpr_ros.localization.verification.learned import LIGHTGLUE_DISK  # noqa: E402
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_torch_thread():
-    """torch on one thread while this module runs: its OpenMP threads spin while they wait,
-    which on a loaded 2-core host made each model call ~10x slower (bench_learned.py)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")

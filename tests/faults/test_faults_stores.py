@@ -319,18 +319,6 @@ def test_ablate_out_never_over_inputs(cli, map_copy, demo_data, tmp_path):
 
 
 # -- round 5 (issue 43): found elsewhere ----------------------------------------------------------
-@pytest.fixture
-def map_loads(monkeypatch):
-    """The maps a command opened (ReferenceMap.load), in order."""
-    from vlm_vpr_ros.maps.reference_map import ReferenceMap
-
-    calls: list[str] = []
-    load = ReferenceMap.load.__func__
-    monkeypatch.setattr(ReferenceMap, "load", classmethod(
-        lambda cls, path, *a, **k: (calls.append(str(path)), load(cls, path, *a, **k))[1]))
-    return calls
-
-
 @pytest.mark.fault("localize_checks_before_map")
 def test_localize_checks_everything_before_the_map(cli, demo_map, demo_data, queries, tmp_path,
                                                    map_loads):
